@@ -1,0 +1,44 @@
+# swarmnav — every user-facing entry point. `make setup` is idempotent; run/test depend on it.
+PY      ?= python3
+VENV    := .venv
+BIN     := $(VENV)/bin
+STAMP   := $(VENV)/.setup-stamp
+CONFIG  ?= configs/paper.toml
+ALGO    ?= atvfg
+SEED    ?= 1
+export OMP_NUM_THREADS=1
+export OPENBLAS_NUM_THREADS=1
+export MKL_NUM_THREADS=1
+
+.PHONY: setup run dropout view test test-fast evaluate clean help
+help:            ## list targets
+	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*##/ —/'
+
+setup: $(STAMP)  ## create/refresh .venv with the pinned dependencies
+$(STAMP): requirements.lock pyproject.toml
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -r requirements.lock
+	$(BIN)/python -m pip install -q --no-deps -e .
+	touch $(STAMP)
+
+run: setup       ## the paper scenario as a real multi-process Zenoh swarm (results in runs/latest)
+	$(BIN)/swarmnav launch --config $(CONFIG) --algo $(ALGO) --seed $(SEED)
+
+dropout: setup   ## configs/dropout.toml: UAV 7 killed at 400 s, restarted at 600 s
+	$(BIN)/swarmnav launch --config configs/dropout.toml --algo $(ALGO) --seed $(SEED)
+
+evaluate: setup  ## in-process evaluation of all algorithms on CONFIG
+	$(BIN)/swarmnav evaluate --config $(CONFIG) --algos atvfg,fg,fkf,ins,central --seeds $(SEED)
+
+view: setup      ## open the latest recording in the Rerun viewer
+	$(BIN)/rerun runs/latest/*.rrd
+
+test: setup      ## the whole test suite
+	$(BIN)/python -m pytest -q
+
+test-fast: setup ## unit tests only (no multi-process, no slow)
+	$(BIN)/python -m pytest -q -m "not slow and not integration"
+
+clean:
+	rm -rf runs .pytest_cache

@@ -1,0 +1,54 @@
+"""`swarmnav` command line: thin entry point (parser -> config -> run), one module per command.
+
+Each command lives in ``services/commands/<name>.py`` and exposes ``HELP``, ``add_arguments(parser)``
+and ``run(args) -> int``. User errors (:class:`swarmnav.errors.SwarmnavError`) are printed as one
+clear message without a traceback and exit with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+COMMANDS = {
+    "simulate": "services.commands.simulate",
+    "evaluate": "services.commands.evaluate",
+    "launch": "services.commands.launch",
+    "calibrate": "services.commands.calibrate",
+    "import-miluv": "services.commands.import_miluv",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="swarmnav",
+        description="Cooperative navigation for UAV swarms (adaptive time-varying factor graph) — "
+        "simulate scenarios, evaluate estimators in-process, or launch the Zenoh swarm.",
+    )
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, modname in COMMANDS.items():
+        mod = importlib.import_module(modname)
+        sp = sub.add_parser(name, help=mod.HELP, description=getattr(mod, "DESCRIPTION", mod.HELP),
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
+        mod.add_arguments(sp)
+        sp.set_defaults(_run=mod.run)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    from swarmnav.errors import SwarmnavError
+
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args._run(args) or 0)
+    except SwarmnavError as e:
+        print(f"swarmnav {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"swarmnav {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

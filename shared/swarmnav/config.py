@@ -1,0 +1,304 @@
+"""Scenario configuration: pydantic models for everything a scenario holds, and the TOML loader.
+
+One place for every number of a scenario (DESIGN.md §3). Units are SI unless the field name says
+otherwise (``_deg``, ``_dph`` = deg/h, ``_ug`` = micro-g, ``_dpsh`` = deg/sqrt(h),
+``_ugpshz`` = micro-g/sqrt(Hz), the PSINS ``imuerrset`` convention). Frames: ENU about the
+geodetic origin, body FLU.
+
+A config file may name a ``base`` file (relative to itself); the two are deep-merged, the
+derived file winning (tables merge key by key, arrays replace). ``load_config`` raises
+:class:`ConfigError` whose message names the offending field and the reason.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from .errors import ConfigError
+
+PositiveFloat = Annotated[float, Field(gt=0)]
+NonNegFloat = Annotated[float, Field(ge=0)]
+Range2 = tuple[float, float]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ScenarioMeta(_Model):
+    name: str
+    description: str = ""
+    seed: int = Field(1, ge=0, description="run seed: drives every random draw except UAV 1's start")
+    duration_s: PositiveFloat
+    epoch_dt_s: PositiveFloat = 1.0
+    imu_rate_hz: PositiveFloat = 100.0
+
+
+class Origin(_Model):
+    lat_deg: float = Field(ge=-90, le=90)
+    lon_deg: float = Field(ge=-180, le=180)
+    alt_m: float = 0.0
+
+
+class Swarm(_Model):
+    n_uavs: int = Field(ge=2, le=64)
+    masters: list[int] = Field(description="UAV ids (1-based) with the high-grade sensor set")
+    uav1_start_enu_m: tuple[float, float, float]
+    box_e_m: Range2
+    box_n_m: Range2
+    box_u_m: Range2
+    min_separation_m: PositiveFloat = 30.0
+
+    @model_validator(mode="after")
+    def _check(self) -> "Swarm":
+        bad = [m for m in self.masters if not 1 <= m <= self.n_uavs]
+        if bad:
+            raise ValueError(f"masters {bad} are not UAV ids in 1..{self.n_uavs}")
+        for name in ("box_e_m", "box_n_m", "box_u_m"):
+            lo, hi = getattr(self, name)
+            if lo >= hi:
+                raise ValueError(f"{name}: lower bound {lo} must be below upper bound {hi}")
+        return self
+
+    def role(self, uav: int) -> Literal["master", "slave"]:
+        return "master" if uav in self.masters else "slave"
+
+
+class Manoeuvre(_Model):
+    """One leg of the formation-centre flight plan, flown after the initial acceleration."""
+
+    kind: Literal["straight", "turn", "climb", "s_turn"]
+    duration_s: PositiveFloat
+    turn_deg: float = 0.0  # turn: heading change (positive = right/clockwise seen from above)
+    climb_rate_mps: float = 0.0  # climb: vertical speed (negative = descent)
+    s_amplitude_deg: float = 0.0  # s_turn: peak heading deviation
+    s_period_s: float = 60.0  # s_turn: period of the heading oscillation
+
+
+class Trajectory(_Model):
+    initial_heading_deg: float = 90.0  # 0 = north, 90 = east
+    cruise_speed_mps: PositiveFloat = 15.0
+    accel_time_s: PositiveFloat = 20.0
+    wander_amplitude_m: NonNegFloat = 10.0
+    wander_period_s: tuple[float, float] = (60.0, 240.0)  # range the per-UAV wander periods are drawn from
+    manoeuvres: list[Manoeuvre] = Field(default_factory=list)
+
+
+class ImuSpec(_Model):
+    """PSINS imuerrset(eb, db, web, wdb) plus bias random walk."""
+
+    gyro_bias_dph: NonNegFloat
+    accel_bias_ug: NonNegFloat
+    arw_dpsh: NonNegFloat
+    vrw_ugpshz: NonNegFloat
+    gyro_bias_rw_dphpsh: NonNegFloat = 0.0  # bias random walk, deg/h per sqrt(h)
+    accel_bias_rw_ugpssh: NonNegFloat = 0.0  # bias random walk, micro-g per sqrt(s)
+
+
+class GnssSpec(_Model):
+    rate_hz: PositiveFloat = 1.0
+    pos_sigma_m: tuple[float, float, float]  # white, E N U
+    gm_sigma_m: NonNegFloat = 0.0  # first-order Gauss-Markov bias, per axis
+    gm_tau_s: PositiveFloat = 120.0
+    vel_sigma_mps: NonNegFloat
+
+
+class UwbSpec(_Model):
+    sigma_m: PositiveFloat = 0.10
+    link_bias_sigma_m: NonNegFloat = 0.05
+    max_range_m: PositiveFloat = 400.0
+    packet_loss: float = Field(0.02, ge=0, lt=1)
+
+
+class RelSpec(_Model):
+    sigma_deg: PositiveFloat = 1.0
+    max_range_m: PositiveFloat = 300.0
+
+
+class Sensors(_Model):
+    imu: dict[Literal["master", "slave"], ImuSpec]
+    gnss: dict[Literal["master", "slave"], GnssSpec]
+    uwb: UwbSpec = UwbSpec()
+    rel: RelSpec = RelSpec()
+
+    @model_validator(mode="after")
+    def _roles(self) -> "Sensors":
+        for name in ("imu", "gnss"):
+            missing = {"master", "slave"} - set(getattr(self, name))
+            if missing:
+                raise ValueError(f"{name}: no spec for role(s) {sorted(missing)}")
+        return self
+
+
+class Interference(_Model):
+    """Fault 1: every link switches in/out of an interfered (NLOS) state, two-state Markov."""
+
+    enabled: bool = True
+    mean_dwell_s: PositiveFloat = 20.0
+    time_fraction: float = Field(0.10, ge=0, lt=1)
+    bias_m: Range2 = (1.0, 8.0)
+    noise_scale: PositiveFloat = 5.0
+
+
+class ModuleFailure(_Model):
+    """Fault 2: every range UAV `uav` takes part in is truth + U(error_m) (new draw each time)."""
+
+    uav: int = Field(ge=1)
+    start_s: NonNegFloat
+    end_s: NonNegFloat
+    error_m: Range2 = (20.0, 150.0)
+
+
+class StuckModule(_Model):
+    """Fault 3: UAV `uav`'s module repeats the range it measured at `start_s`."""
+
+    uav: int = Field(ge=1)
+    start_s: NonNegFloat
+    end_s: NonNegFloat
+
+
+class Drift(_Model):
+    """Fault 4: link `link` gains a bias growing `rate_mps` over [start_s, end_s], then clears."""
+
+    link: tuple[int, int]
+    start_s: NonNegFloat
+    end_s: NonNegFloat
+    rate_mps: float = 0.05
+
+
+class GnssOutage(_Model):
+    uavs: Literal["slaves", "masters", "all"] | list[int] = "slaves"
+    start_s: NonNegFloat
+    end_s: NonNegFloat
+
+
+class ProcessKill(_Model):
+    """Distributed runs only: SIGKILL the UAV's process at `at_s`; restart at `restart_s` if given."""
+
+    uav: int = Field(ge=1)
+    at_s: NonNegFloat
+    restart_s: float | None = None
+
+
+class Faults(_Model):
+    interference: Interference = Interference(enabled=False)
+    module_failure: list[ModuleFailure] = Field(default_factory=list)
+    stuck: list[StuckModule] = Field(default_factory=list)
+    drift: list[Drift] = Field(default_factory=list)
+    gnss_outage: list[GnssOutage] = Field(default_factory=list)
+    process_kill: list[ProcessKill] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _windows(self) -> "Faults":
+        for name in ("module_failure", "stuck", "drift", "gnss_outage"):
+            for i, w in enumerate(getattr(self, name)):
+                if w.end_s <= w.start_s:
+                    raise ValueError(f"{name}[{i}]: end_s {w.end_s} must be after start_s {w.start_s}")
+        for i, k in enumerate(self.process_kill):
+            if k.restart_s is not None and k.restart_s <= k.at_s:
+                raise ValueError(f"process_kill[{i}]: restart_s must be after at_s")
+        return self
+
+
+class InitialKnowledge(_Model):
+    """Coarse-alignment errors of every estimator's initial state (position sigma = its GNSS)."""
+
+    vel_sigma_mps: NonNegFloat = 0.1
+    roll_pitch_sigma_deg: NonNegFloat = 0.5
+    yaw_sigma_deg: NonNegFloat = 2.0
+
+
+class Estimation(_Model):
+    """Settings shared by the estimators (tuning, not scenario truth)."""
+
+    rounds: int = Field(3, ge=1, le=100, description="max message-iteration rounds per epoch")
+    convergence_m: NonNegFloat = 0.01  # swarm-wide: stop when every node moved less than this
+    fixed_lag_s: PositiveFloat = 5.0
+    delta_l_file: str = "configs/delta_l.json"  # written by `swarmnav calibrate`
+    delta_l_fallback_sigmas: PositiveFloat = 3.0  # Δl = this × UWB sigma when no training exists
+    residual_window_epochs: int = Field(1, ge=1)  # K-means over a sliding window (sparse real data)
+    peer_timeout_s: PositiveFloat = 2.0  # distributed: wall-clock wait for a live peer's round state
+
+
+class Scenario(_Model):
+    """A whole scenario file."""
+
+    scenario: ScenarioMeta
+    origin: Origin
+    swarm: Swarm
+    trajectory: Trajectory = Trajectory()
+    sensors: Sensors
+    faults: Faults = Faults()
+    init: InitialKnowledge = InitialKnowledge()
+    estimation: Estimation = Estimation()
+
+    @model_validator(mode="after")
+    def _cross(self) -> "Scenario":
+        n = self.swarm.n_uavs
+        for f in self.faults.module_failure + self.faults.stuck + self.faults.process_kill:
+            if f.uav > n:
+                raise ValueError(f"faults: uav {f.uav} does not exist (n_uavs = {n})")
+        for d in self.faults.drift:
+            if not all(1 <= u <= n for u in d.link) or d.link[0] == d.link[1]:
+                raise ValueError(f"faults.drift: link {d.link} is not a pair of distinct UAVs in 1..{n}")
+        return self
+
+    def uav_ids(self) -> list[int]:
+        return list(range(1, self.swarm.n_uavs + 1))
+
+    def to_dict(self) -> dict:
+        return self.model_dump(mode="json")
+
+    def sha256(self) -> str:
+        return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()
+
+
+def _deep_merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _read_toml(path: Path, seen: tuple[Path, ...] = ()) -> dict:
+    path = path.resolve()
+    if path in seen:
+        raise ConfigError(f"{path}: 'base' chain loops back to itself")
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"config file not found: {path}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: not valid TOML: {e}") from None
+    base = data.pop("base", None)
+    if base is None:
+        return data
+    if not isinstance(base, str):
+        raise ConfigError(f"{path}: field 'base' must be a file name string")
+    return _deep_merge(_read_toml(path.parent / base, seen + (path,)), data)
+
+
+def format_validation_error(e: ValidationError, source: str) -> str:
+    lines = [f"{source}: invalid configuration ({e.error_count()} problem(s)):"]
+    for err in e.errors():
+        loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        lines.append(f"  - field '{loc}': {err['msg']} (got {err.get('input')!r:.80})")
+    return "\n".join(lines)
+
+
+def parse_config(data: dict, source: str = "<config>") -> Scenario:
+    try:
+        return Scenario.model_validate(data)
+    except ValidationError as e:
+        raise ConfigError(format_validation_error(e, source)) from None
+
+
+def load_config(path: str | Path) -> Scenario:
+    """Load and validate a scenario TOML file (following its ``base`` chain)."""
+    return parse_config(_read_toml(Path(path)), str(path))

@@ -1,0 +1,75 @@
+"""The per-epoch message-iteration protocol, written once for both transports.
+
+:func:`node_epoch` is one node's side of epoch k as a generator: it yields each state the node
+must broadcast and receives, in return, the dict of the other live nodes' states of that same
+round. The in-process transport (:func:`run_epoch_in_process`) and the Zenoh ``uav_node``
+service both drive this generator, so with synchronous rounds they compute the same numbers.
+
+Round structure (DESIGN.md §2): round 0 = predicted state (+ own ranges); round r = 1..R uses the
+neighbours' round r-1 states. Convergence is decided swarm-wide from the round's states, which
+every node receives, so every node stops after the same round.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Generator
+
+from .dataset import EpochInput
+from .estimators.base import NodeEstimate, NodeEstimator, NodeState
+
+NodeEpoch = Generator[NodeState, dict[int, NodeState], NodeEstimate]
+
+
+def swarm_converged(own: NodeState, peers: dict[int, NodeState], tol_m: float) -> bool:
+    """True when every live node's last position change is below tol_m."""
+    return own.delta_m < tol_m and all(s.delta_m < tol_m for s in peers.values())
+
+
+def node_epoch(est: NodeEstimator, inp: EpochInput, rounds: int, tol_m: float) -> NodeEpoch:
+    """One node's epoch. Yields states to broadcast; receives peers' same-round states.
+
+    The returned NodeEstimate carries ``step_ms``: wall time spent in the estimator for this
+    epoch (every round and the final covariance), excluding time suspended waiting for peers.
+    """
+    busy = 0.0
+    t0 = time.perf_counter()
+    state = est.begin_epoch(inp)
+    busy += time.perf_counter() - t0
+    peers = yield state
+    done = 0
+    for r in range(1, rounds + 1):
+        t0 = time.perf_counter()
+        state = est.iterate(r, peers)
+        busy += time.perf_counter() - t0
+        done = r
+        peers = yield state
+        if swarm_converged(state, peers, tol_m):
+            break
+    t0 = time.perf_counter()
+    out = est.end_epoch()
+    busy += time.perf_counter() - t0
+    out.rounds = done
+    out.step_ms = busy * 1e3
+    return out
+
+
+def run_epoch_in_process(epochs: dict[int, NodeEpoch]) -> dict[int, NodeEstimate]:
+    """In-memory transport: drive every live node's epoch generator in lock-step rounds.
+
+    Every node receives all other live nodes' states of the same round (a broadcast bus).
+    Iteration is in UAV-id order; the result does not depend on it.
+    """
+    states: dict[int, NodeState] = {u: next(g) for u, g in sorted(epochs.items())}
+    active = dict(sorted(epochs.items()))
+    results: dict[int, NodeEstimate] = {}
+    while active:
+        snapshot = dict(states)
+        for u, g in list(active.items()):
+            try:
+                states[u] = g.send({j: s for j, s in snapshot.items() if j != u})
+            except StopIteration as stop:
+                results[u] = stop.value
+                del active[u]
+                states.pop(u, None)
+    return results
