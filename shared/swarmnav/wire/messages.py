@@ -1,0 +1,358 @@
+"""Wire messages of the Zenoh deployment: pydantic models with a schema version, JSON-encoded.
+
+Every message carries ``v`` (:data:`SCHEMA_VERSION`). Floats travel as JSON numbers written with
+the shortest repr that round-trips, so float64 values arrive bit-identical (tests/test_messages.py);
+``+inf`` is allowed only where the protocol needs it (``delta_m`` of round 0) and NaN never.
+
+Receivers call :func:`decode` with what the key told them (the UAV id) and the oldest epoch they
+still accept; anything malformed (not JSON, wrong shape, unknown field), of an unknown version,
+out of range (NaN/inf, negative range or sigma, bad ids) or about the wrong UAV or a stale epoch
+raises :class:`WireError`. Services count and log those with :class:`Rejects` and keep running.
+This module is pure (no zenoh); converters map messages to/from the core's dataclasses.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections import Counter
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from ..dataset import EpochInput
+from ..estimators.base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeState
+
+SCHEMA_VERSION = 1
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Pos = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+UavId = Annotated[int, Field(ge=1)]
+Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
+Mat3 = Annotated[list[Finite], Field(min_length=9, max_length=9)]  # row-major 3x3
+
+
+class WireError(ValueError):
+    """A received message was rejected. ``reason`` is a short class for counting."""
+
+    def __init__(self, reason: str, detail: str = ""):
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason
+
+
+class Msg(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, ser_json_inf_nan="constants", strict=False)
+    v: Literal[1] = SCHEMA_VERSION
+
+    def encode(self) -> bytes:
+        return self.model_dump_json().encode()
+
+
+class UavMsg(Msg):
+    uav: UavId
+    k: int = Field(ge=0)
+
+
+def _same_len(m: BaseModel, *names: str, per: dict[str, int] | None = None) -> None:
+    per = per or {}
+    n = None
+    for name in names:
+        ln = len(getattr(m, name)) // per.get(name, 1)
+        if len(getattr(m, name)) % per.get(name, 1):
+            raise ValueError(f"{name}: length not a multiple of {per[name]}")
+        if n is None:
+            n = ln
+        elif ln != n:
+            raise ValueError(f"{names}: lengths differ")
+
+
+# -- sensor-sim -> node ------------------------------------------------------------------------
+
+
+class ImuMsg(UavMsg):
+    t: Finite
+    t_prev: Finite
+    imu_t: list[Finite]
+    gyro: list[Finite]  # M*3 row-major, rad/s
+    accel: list[Finite]  # M*3, m/s^2
+
+    @model_validator(mode="after")
+    def _shape(self):
+        _same_len(self, "imu_t", "gyro", "accel", per={"gyro": 3, "accel": 3})
+        return self
+
+
+class GnssMsg(UavMsg):
+    pos: Vec3
+    vel: Vec3
+    pos_sigma: Annotated[list[Pos], Field(min_length=3, max_length=3)]
+    vel_sigma: Pos
+
+
+class UwbMsg(UavMsg):
+    range_t: list[Finite]
+    other: list[Annotated[int, Field(ge=0)]]
+    tag_self: list[Annotated[int, Field(ge=0)]]
+    tag_other: list[Annotated[int, Field(ge=0)]]
+    range_m: list[NonNeg]
+    sigma: list[Pos]
+
+    @model_validator(mode="after")
+    def _shape(self):
+        _same_len(self, "range_t", "other", "tag_self", "tag_other", "range_m", "sigma")
+        if self.uav in self.other:
+            raise ValueError("a UAV cannot range to itself")
+        return self
+
+
+class RelMsg(UavMsg):
+    target: list[UavId]
+    az: list[Finite]
+    el: list[Finite]
+    sigma: list[Pos]
+
+    @model_validator(mode="after")
+    def _shape(self):
+        _same_len(self, "target", "az", "el", "sigma")
+        if self.uav in self.target:
+            raise ValueError("a UAV cannot observe itself")
+        return self
+
+
+class EpochMsg(UavMsg):
+    """Closes epoch k's inputs for one UAV: which parts were sent, who takes part in the epoch."""
+
+    t: Finite
+    t_prev: Finite
+    parts: list[Literal["imu", "gnss", "uwb", "rel"]]
+    participants: list[UavId]
+    altitude: Finite | None = None
+    altitude_sigma: Pos | None = None
+
+
+class InitMsg(Msg):
+    uav: UavId
+    t: Finite
+    pos: Vec3
+    vel: Vec3
+    quat: Annotated[list[Finite], Field(min_length=4, max_length=4)]
+    pos_sigma: Annotated[list[Pos], Field(min_length=3, max_length=3)]
+    vel_sigma: NonNeg
+    att_sigma: Annotated[list[NonNeg], Field(min_length=3, max_length=3)]
+
+
+class MetaMsg(Msg):
+    run: str
+    seed: int
+    meta: dict  # DatasetMeta as JSON (by alias)
+
+
+class TruthLabel(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    other: int
+    fault_kind: int
+    fault_err: float | None  # None = unknown
+
+
+class TruthMsg(UavMsg):
+    t: Finite
+    pos: Vec3
+    vel: Vec3
+    quat: Annotated[list[Finite], Field(min_length=4, max_length=4)]
+
+
+# -- node -> peers / monitor -----------------------------------------------------------------
+
+
+class StateMsg(UavMsg):
+    r: int = Field(ge=0)
+    t: Finite
+    pos: Vec3
+    pos_cov: Mat3
+    vel: Vec3
+    delta_m: Annotated[float, Field(ge=0, allow_inf_nan=True)] = math.inf
+    ranges: dict[int, NonNeg] = Field(default_factory=dict)
+
+    @field_validator("delta_m")
+    @classmethod
+    def _no_nan(cls, x: float) -> float:
+        if math.isnan(x):
+            raise ValueError("delta_m is NaN")
+        return x
+
+
+class LinkMsg(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    other: int = Field(ge=0)
+    cls: int = Field(ge=0, le=2)
+    residual_m: Finite
+    weight: NonNeg
+
+
+class EstimateMsg(UavMsg):
+    t: Finite
+    pos: Vec3
+    vel: Vec3
+    pos_cov: Mat3
+    quat: Annotated[list[Finite], Field(min_length=4, max_length=4)] | None = None
+    links: list[LinkMsg] = Field(default_factory=list)
+    rounds: int = Field(0, ge=0)
+    step_ms: NonNeg = 0.0
+    wait_ms: NonNeg = 0.0
+    delta_h_m: Finite | None = None
+    delta_l_m: Finite | None = None
+    peers: list[UavId] = Field(default_factory=list)  # the peers whose states this epoch used
+    bytes_out: int = Field(0, ge=0)  # bytes this node published for the epoch (state + estimate)
+
+
+class LinksMsg(UavMsg):
+    links: list[LinkMsg]
+
+
+class HistoryMsg(Msg):
+    """Reply of the state queryable: the node's latest states (oldest first)."""
+
+    uav: UavId
+    states: list[StateMsg]
+    estimates: list[EstimateMsg] = Field(default_factory=list)
+
+
+# -- decoding --------------------------------------------------------------------------------
+
+
+def decode(cls: type[Msg], payload: bytes | str, *, uav: int | None = None, min_k: int | None = None) -> Msg:
+    """Parse and validate; raise WireError(reason) on anything the receiver must not use."""
+    try:
+        raw = json.loads(payload)
+    except (ValueError, UnicodeDecodeError) as e:
+        raise WireError("malformed", f"not JSON ({e})") from None
+    if not isinstance(raw, dict):
+        raise WireError("malformed", "not a JSON object")
+    if raw.get("v") != SCHEMA_VERSION:
+        raise WireError("version", f"schema version {raw.get('v')!r}, expected {SCHEMA_VERSION}")
+    try:
+        m = cls.model_validate(raw)
+    except ValidationError as e:
+        err = e.errors()[0]
+        raise WireError("invalid", f"{'.'.join(map(str, err['loc']))}: {err['msg']}") from None
+    if uav is not None and getattr(m, "uav", uav) != uav:
+        raise WireError("wrong_uav", f"message about UAV {m.uav} on UAV {uav}'s key")
+    if min_k is not None and getattr(m, "k", min_k) < min_k:
+        raise WireError("stale", f"epoch {m.k} < {min_k}")
+    return m
+
+
+class Rejects:
+    """Counts rejected messages by (topic, reason) and logs them (first few, then every 100th)."""
+
+    def __init__(self, log: logging.Logger):
+        self.log = log
+        self.counts: Counter = Counter()
+
+    def add(self, topic: str, err: Exception) -> None:
+        reason = getattr(err, "reason", type(err).__name__)
+        self.counts[(topic, reason)] += 1
+        n = sum(self.counts.values())
+        if n <= 20 or n % 100 == 0:
+            self.log.warning("rejected message on %s (%s): %s [total rejected %d]", topic, reason, err, n)
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+    def as_dict(self) -> dict[str, int]:
+        return {f"{t}:{r}": n for (t, r), n in sorted(self.counts.items())}
+
+
+# -- converters to/from the core's dataclasses ------------------------------------------------
+
+
+def _f(a) -> list[float]:
+    return [float(x) for x in np.asarray(a, dtype=np.float64).ravel()]
+
+
+def state_to_msg(s: NodeState) -> StateMsg:
+    return StateMsg(uav=s.uav, k=s.k, r=s.r, t=float(s.t), pos=_f(s.pos), pos_cov=_f(s.pos_cov), vel=_f(s.vel),
+                    delta_m=float(s.delta_m), ranges={int(o): float(d) for o, d in sorted(s.ranges.items())})
+
+
+def msg_to_state(m: StateMsg) -> NodeState:
+    return NodeState(uav=m.uav, k=m.k, r=m.r, t=m.t, pos=np.array(m.pos, np.float64),
+                     pos_cov=np.array(m.pos_cov, np.float64).reshape(3, 3), vel=np.array(m.vel, np.float64),
+                     delta_m=m.delta_m, ranges={int(o): float(d) for o, d in sorted(m.ranges.items())})
+
+
+def estimate_to_msg(e: NodeEstimate, **extra) -> EstimateMsg:
+    return EstimateMsg(uav=e.uav, k=e.k, t=float(e.t), pos=_f(e.pos), vel=_f(e.vel), pos_cov=_f(e.pos_cov),
+                       quat=None if e.quat is None else _f(e.quat),
+                       links=[LinkMsg(other=int(li.other), cls=int(li.cls), residual_m=float(li.residual_m),
+                                      weight=float(li.weight)) for li in e.links],
+                       rounds=int(e.rounds), step_ms=float(e.step_ms),
+                       delta_h_m=None if e.delta_h_m is None else float(e.delta_h_m),
+                       delta_l_m=None if e.delta_l_m is None else float(e.delta_l_m), **extra)
+
+
+def msg_to_estimate(m: EstimateMsg) -> NodeEstimate:
+    return NodeEstimate(uav=m.uav, k=m.k, t=m.t, pos=np.array(m.pos, np.float64), vel=np.array(m.vel, np.float64),
+                        pos_cov=np.array(m.pos_cov, np.float64).reshape(3, 3),
+                        quat=None if m.quat is None else np.array(m.quat, np.float64),
+                        links=[LinkInfo(li.other, LinkClass(li.cls), li.residual_m, li.weight) for li in m.links],
+                        rounds=m.rounds, step_ms=m.step_ms, delta_h_m=m.delta_h_m, delta_l_m=m.delta_l_m)
+
+
+def init_to_msg(uav: int, s: InitialState) -> InitMsg:
+    return InitMsg(uav=uav, t=float(s.t), pos=_f(s.pos), vel=_f(s.vel), quat=_f(s.quat), pos_sigma=_f(s.pos_sigma),
+                   vel_sigma=float(s.vel_sigma), att_sigma=_f(s.att_sigma))
+
+
+def msg_to_init(m: InitMsg) -> InitialState:
+    a = lambda x: np.array(x, np.float64)  # noqa: E731
+    return InitialState(t=m.t, pos=a(m.pos), vel=a(m.vel), quat=a(m.quat), pos_sigma=a(m.pos_sigma),
+                        vel_sigma=m.vel_sigma, att_sigma=a(m.att_sigma))
+
+
+def epoch_input_to_msgs(inp: EpochInput, participants: list[int]) -> dict[str, UavMsg]:
+    """Split one EpochInput into the per-topic messages (``epoch`` last: it lists the parts)."""
+    u, k = inp.uav, inp.k
+    out: dict[str, UavMsg] = {
+        "imu": ImuMsg(uav=u, k=k, t=inp.t, t_prev=inp.t_prev, imu_t=_f(inp.imu_t), gyro=_f(inp.gyro), accel=_f(inp.accel)),
+        "uwb": UwbMsg(uav=u, k=k, range_t=_f(inp.range_t), other=[int(x) for x in inp.range_other],
+                      tag_self=[int(x) for x in inp.range_tag_self], tag_other=[int(x) for x in inp.range_tag_other],
+                      range_m=_f(inp.range_m), sigma=_f(inp.range_sigma)),
+        "rel": RelMsg(uav=u, k=k, target=[int(x) for x in inp.rel_target], az=_f(inp.rel_az), el=_f(inp.rel_el),
+                      sigma=_f(inp.rel_sigma)),
+    }
+    if inp.gnss_pos is not None:
+        out["gnss"] = GnssMsg(uav=u, k=k, pos=_f(inp.gnss_pos), vel=_f(inp.gnss_vel), pos_sigma=_f(inp.gnss_pos_sigma),
+                              vel_sigma=float(inp.gnss_vel_sigma))
+    out["epoch"] = EpochMsg(uav=u, k=k, t=inp.t, t_prev=inp.t_prev, parts=[p for p in ("imu", "gnss", "uwb", "rel") if p in out],
+                            participants=sorted(participants), altitude=inp.altitude, altitude_sigma=inp.altitude_sigma)
+    return out
+
+
+def msgs_to_epoch_input(parts: dict[str, UavMsg]) -> EpochInput:
+    """Inverse of :func:`epoch_input_to_msgs` (needs 'epoch' and every part it lists)."""
+    ep: EpochMsg = parts["epoch"]
+    a = lambda x: np.array(x, np.float64)  # noqa: E731
+    i = lambda x: np.array(x, np.int64)  # noqa: E731
+    imu: ImuMsg = parts["imu"]
+    inp = EpochInput(uav=ep.uav, k=ep.k, t=ep.t, t_prev=ep.t_prev, imu_t=a(imu.imu_t),
+                     gyro=a(imu.gyro).reshape(-1, 3), accel=a(imu.accel).reshape(-1, 3),
+                     altitude=ep.altitude, altitude_sigma=ep.altitude_sigma)
+    g = parts.get("gnss")
+    if g is not None:
+        inp.gnss_pos, inp.gnss_vel, inp.gnss_pos_sigma, inp.gnss_vel_sigma = a(g.pos), a(g.vel), a(g.pos_sigma), g.vel_sigma
+    w = parts.get("uwb")
+    if w is not None and len(w.range_t):
+        inp.range_t, inp.range_other, inp.range_tag_self, inp.range_tag_other = a(w.range_t), i(w.other), i(w.tag_self), i(w.tag_other)
+        inp.range_m, inp.range_sigma = a(w.range_m), a(w.sigma)
+    r = parts.get("rel")
+    if r is not None and len(r.target):
+        inp.rel_target, inp.rel_az, inp.rel_el, inp.rel_sigma = i(r.target), a(r.az), a(r.el), a(r.sigma)
+    return inp
+
+
+SENSOR_MSG: dict[str, type[UavMsg]] = {"imu": ImuMsg, "gnss": GnssMsg, "uwb": UwbMsg, "rel": RelMsg, "epoch": EpochMsg}
