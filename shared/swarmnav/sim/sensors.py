@@ -1,0 +1,228 @@
+"""Sensor models of the simulator: IMU errors, GNSS, UWB two-way ranging with faults, relative az/el.
+
+All functions are pure and vectorised; randomness comes from the generators passed in (one
+stream per purpose, derived from the run seed in ``simulate.py``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import GnssSpec, ImuSpec, Scenario
+from ..dataset import FaultKind, ImuNoise
+from ..geometry import azimuth_elevation
+from .earth import DPH, DPHPSH, DPSH, UG, UGPSHZ, UGPSSH
+
+EPS_T = 1e-9
+
+
+# -- IMU ------------------------------------------------------------------------------------
+
+
+def imu_noise_si(spec: ImuSpec) -> ImuNoise:
+    """PSINS imuerrset(eb °/h, db µg, web °/√h, wdb µg/√Hz) + bias random walk -> SI."""
+    return ImuNoise(
+        gyro_noise_density=spec.arw_dpsh * DPSH,
+        accel_noise_density=spec.vrw_ugpshz * UGPSHZ,
+        gyro_bias_sigma=spec.gyro_bias_dph * DPH,
+        accel_bias_sigma=spec.accel_bias_ug * UG,
+        gyro_bias_rw=spec.gyro_bias_rw_dphpsh * DPHPSH,
+        accel_bias_rw=spec.accel_bias_rw_ugpssh * UGPSSH,
+    )
+
+
+@dataclass
+class ImuErrors:
+    gyro_bias0: np.ndarray  # (3,) constant turn-on bias
+    accel_bias0: np.ndarray
+
+
+def corrupt_imu(gyro: np.ndarray, accel: np.ndarray, noise: ImuNoise, dt: float,
+                rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, ImuErrors]:
+    """One UAV's (N,3) ideal samples -> measured: + constant bias N(0, σ_b) + random walk + white.
+
+    Bias at sample k: b0 + Σ_{j<k} σ_rw √dt n_j (b at k = 0 is b0). White noise per sample:
+    density / √dt (sample k is the average over its hold interval).
+    """
+    N = gyro.shape[0]
+    bg0 = rng.normal(0.0, noise.gyro_bias_sigma, 3)
+    ba0 = rng.normal(0.0, noise.accel_bias_sigma, 3)
+    sq = np.sqrt(dt)
+
+    def walk(sig):
+        w = rng.normal(0.0, sig * sq, (N, 3))
+        w = np.cumsum(w, axis=0)
+        w[1:] = w[:-1].copy()
+        w[0] = 0.0
+        return w
+
+    g = gyro + bg0 + walk(noise.gyro_bias_rw) + rng.normal(0.0, noise.gyro_noise_density / sq, (N, 3))
+    a = accel + ba0 + walk(noise.accel_bias_rw) + rng.normal(0.0, noise.accel_noise_density / sq, (N, 3))
+    return g, a, ImuErrors(bg0, ba0)
+
+
+# -- GNSS -----------------------------------------------------------------------------------
+
+
+def gnss_sigma_total(spec: GnssSpec) -> np.ndarray:
+    """Per-axis 1-σ of the total position error (white ⊕ stationary Gauss–Markov bias)."""
+    return np.sqrt(np.asarray(spec.pos_sigma_m, float) ** 2 + spec.gm_sigma_m**2)
+
+
+def gnss_errors(spec: GnssSpec, n: int, dt: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(n,3) position error (white + first-order GM bias, stationary from the start) and (n,3) velocity error."""
+    white = rng.normal(0.0, 1.0, (n, 3)) * np.asarray(spec.pos_sigma_m, float)
+    gm = np.zeros((n, 3))
+    if spec.gm_sigma_m > 0:
+        phi = np.exp(-dt / spec.gm_tau_s)
+        drive = rng.normal(0.0, spec.gm_sigma_m * np.sqrt(1.0 - phi * phi), (n, 3))
+        gm[0] = rng.normal(0.0, spec.gm_sigma_m, 3)
+        for k in range(1, n):
+            gm[k] = phi * gm[k - 1] + drive[k]
+    vel = rng.normal(0.0, spec.vel_sigma_mps, (n, 3))
+    return white + gm, vel
+
+
+def outage_uavs(sel, sc: Scenario) -> list[int]:
+    ids = sc.uav_ids()
+    if sel == "all":
+        return ids
+    if sel == "masters":
+        return [u for u in ids if u in sc.swarm.masters]
+    if sel == "slaves":
+        return [u for u in ids if u not in sc.swarm.masters]
+    return sorted(int(u) for u in sel)
+
+
+def in_window(t: np.ndarray, start: float, end: float) -> np.ndarray:
+    """Closed window start <= t <= end (with a small tolerance for float epoch times)."""
+    return (t >= start - EPS_T) & (t <= end + EPS_T)
+
+
+# -- UWB ------------------------------------------------------------------------------------
+
+
+def pairs(U: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unordered pairs (a < b), 0-based indices, lexicographic order."""
+    a, b = np.triu_indices(U, k=1)
+    return a, b
+
+
+@dataclass
+class UwbResult:
+    range: np.ndarray  # (K,P) measured range (all link-epochs, before range limit and loss)
+    true: np.ndarray  # (K,P)
+    kind: np.ndarray  # (K,P) FaultKind
+    err: np.ndarray  # (K,P) added error, m
+    keep: np.ndarray  # (K,P) bool: row emitted (within max range and not lost)
+    link_bias: np.ndarray  # (P,)
+    interfered: np.ndarray  # (K,P) bool
+
+
+def simulate_uwb(sc: Scenario, t: np.ndarray, pos: np.ndarray, rng_bias, rng_noise, rng_loss,
+                 rng_intf, rng_fail) -> UwbResult:
+    """Two-way ranges at epoch times t (K,) from ENU positions pos (K,U,3).
+
+    Nominal: d + b_link + σ n, b_link ~ N(0, link_bias_sigma) per link. Faults (DESIGN.md §3),
+    applied in this order, each adding to ``err`` (the error beyond the nominal model):
+      1 interference: per-link two-state Markov chain (stationary start, mean dwell in the
+        interfered state ``mean_dwell_s``, fraction ``time_fraction``); per episode a bias
+        U(bias_m), noise ×noise_scale (err = bias + (noise_scale−1) σ n);
+      4 drift: + rate·(t − start) on the link for start <= t <= end;
+      2 failure: + U(error_m), a new draw per measurement, every link of the UAV in the window;
+      3 stuck: every link of the UAV repeats its (fully faulted) measurement at the first epoch
+        >= start_s; err = repeated value − (d + b_link + σ n) now.
+    Label precedence (kind of a link-epoch with several): stuck > failure > drift > interference;
+    ``err`` is always the total. Windows are closed [start_s, end_s].
+    """
+    uw = sc.sensors.uwb
+    K, U = pos.shape[0], pos.shape[1]
+    ia, ib = pairs(U)
+    P = len(ia)
+    d = np.linalg.norm(pos[:, ia] - pos[:, ib], axis=-1)
+    bias = rng_bias.normal(0.0, uw.link_bias_sigma_m, P)
+    n = rng_noise.normal(0.0, 1.0, (K, P))
+    nominal = d + bias + uw.sigma_m * n
+    err = np.zeros((K, P))
+    kind = np.zeros((K, P), np.int64)
+
+    intf = np.zeros((K, P), bool)
+    fi = sc.faults.interference
+    if fi.enabled and fi.time_fraction > 0:
+        dtk = np.diff(t, prepend=t[0] - sc.scenario.epoch_dt_s)
+        p_exit_base = 1.0 / fi.mean_dwell_s
+        frac = fi.time_fraction
+        u_tr = rng_intf.random((K, P))
+        b_draw = rng_intf.uniform(fi.bias_m[0], fi.bias_m[1], (K, P))
+        state = rng_intf.random(P) < frac
+        cur = b_draw[0].copy()
+        bias_i = np.zeros((K, P))
+        for k in range(K):
+            if k > 0:
+                p_exit = min(1.0, dtk[k] * p_exit_base)
+                p_enter = min(1.0, p_exit * frac / (1.0 - frac))
+                enter = ~state & (u_tr[k] < p_enter)
+                leave = state & (u_tr[k] < p_exit)
+                state = (state | enter) & ~leave
+                cur = np.where(enter, b_draw[k], cur)
+            intf[k] = state
+            bias_i[k] = cur
+        e1 = np.where(intf, bias_i + (fi.noise_scale - 1.0) * uw.sigma_m * n, 0.0)
+        err += e1
+        kind[intf] = FaultKind.INTERFERENCE
+
+    for dr in sc.faults.drift:
+        a, b = sorted(dr.link)
+        j = np.flatnonzero((ia == a - 1) & (ib == b - 1))[0]
+        w = in_window(t, dr.start_s, dr.end_s)
+        e4 = np.where(w, dr.rate_mps * (t - dr.start_s), 0.0)
+        err[:, j] += e4
+        kind[w, j] = FaultKind.DRIFT
+
+    for mf in sc.faults.module_failure:
+        w = in_window(t, mf.start_s, mf.end_s)[:, None] & ((ia == mf.uav - 1) | (ib == mf.uav - 1))[None, :]
+        e2 = rng_fail.uniform(mf.error_m[0], mf.error_m[1], (K, P))
+        err += np.where(w, e2, 0.0)
+        kind[w] = FaultKind.FAILURE
+
+    meas = nominal + err
+    for st in sc.faults.stuck:
+        w_t = in_window(t, st.start_s, st.end_s)
+        if not w_t.any():
+            continue
+        k0 = int(np.flatnonzero(w_t)[0])
+        links = (ia == st.uav - 1) | (ib == st.uav - 1)
+        w = w_t[:, None] & links[None, :]
+        frozen = np.broadcast_to(meas[k0], meas.shape)
+        meas = np.where(w, frozen, meas)
+        err = np.where(w, meas - nominal, err)
+        kind[w] = FaultKind.STUCK
+
+    keep = (d <= uw.max_range_m) & (rng_loss.random((K, P)) >= uw.packet_loss)
+    return UwbResult(range=meas, true=d, kind=kind, err=err, keep=keep, link_bias=bias, interfered=intf)
+
+
+# -- relative azimuth / elevation -----------------------------------------------------------
+
+
+def simulate_rel(sc: Scenario, pos: np.ndarray, rng: np.random.Generator):
+    """Paper eq. 27 per observer per target within rel.max_range, independent N(0, σ) on each angle.
+
+    Returns (K,U,U) azimuth, elevation and the (K,U,U) mask of emitted observations (diagonal off).
+    """
+    rs = sc.sensors.rel
+    sig = np.deg2rad(rs.sigma_deg)
+    po = pos[:, :, None, :]
+    pt = pos[:, None, :, :]
+    az, el = azimuth_elevation(po, pt)
+    rng_d = np.linalg.norm(pt - po, axis=-1)
+    U = pos.shape[1]
+    mask = (rng_d <= rs.max_range_m) & ~np.eye(U, dtype=bool)[None]
+    az = az + rng.normal(0.0, sig, az.shape)
+    el = el + rng.normal(0.0, sig, el.shape)
+    az = np.mod(az + np.pi, 2 * np.pi) - np.pi
+    az = np.where(az <= -np.pi, az + 2 * np.pi, az)  # (−π, π]
+    el = np.clip(el, -np.pi / 2, np.pi / 2)
+    return az, el, mask
