@@ -1,0 +1,186 @@
+"""In-process evaluation: run one algorithm over a Dataset and collect per-epoch estimates as arrays.
+
+Pure (no files, no Rerun, no Zenoh). Per-UAV algorithms are driven by the one epoch protocol of
+:mod:`swarmnav.protocol` over its in-memory transport (:func:`run_epoch_in_process`), with the
+same initial states (:func:`swarmnav.initial.initial_states` with the run seed), the same settings
+and UAVs in sorted id order as the Zenoh deployment, so both transports give the same numbers.
+The central oracle (a :class:`SwarmEstimator`) is stepped once per epoch with the range labels.
+
+Epochs scored are k = 1..K (epoch 0 is the initial knowledge, no estimate). Truth is the dataset's
+truth table interpolated (linearly; exact when the rows are at the epoch times) to the epoch times.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .dataset import Dataset, EpochSlicer
+from .estimators import registry
+from .estimators.base import NodeEstimate
+from .initial import initial_states
+from .protocol import node_epoch, run_epoch_in_process
+
+LINK_DTYPE = np.dtype([("k", np.int32), ("observer", np.int32), ("other", np.int32), ("cls", np.int8),
+                       ("residual_m", np.float64), ("weight", np.float64)])
+
+
+@dataclass
+class RunResult:
+    """One algorithm over one dataset/seed. Arrays indexed [epoch index, uav index]."""
+
+    algo: str
+    seed: int
+    uavs: np.ndarray  # (N,) sorted UAV ids
+    t: np.ndarray  # (K,) epoch times, epochs 1..K
+    pos: np.ndarray  # (K,N,3) ENU m (NaN = no estimate)
+    vel: np.ndarray  # (K,N,3)
+    pos_cov: np.ndarray  # (K,N,3,3)
+    quat: np.ndarray  # (K,N,4) w,x,y,z (NaN when the estimator gives none)
+    step_ms: np.ndarray  # (K,N)
+    rounds: np.ndarray  # (K,N)
+    delta_h_m: np.ndarray  # (K,N) NaN when not reported
+    delta_l_m: np.ndarray  # (K,N)
+    links: np.ndarray = field(default_factory=lambda: np.zeros(0, LINK_DTYPE))  # LINK_DTYPE records
+    wall_s: float = 0.0
+
+    @classmethod
+    def empty(cls, algo: str, seed: int, uavs, t) -> "RunResult":
+        K, N = len(t), len(uavs)
+        nan = lambda *s: np.full(s, np.nan)  # noqa: E731
+        return cls(algo, seed, np.asarray(uavs, int), np.asarray(t, float), nan(K, N, 3), nan(K, N, 3),
+                   nan(K, N, 3, 3), nan(K, N, 4), nan(K, N), np.zeros((K, N), int), nan(K, N), nan(K, N))
+
+
+@dataclass
+class Truth:
+    uavs: np.ndarray  # (N,)
+    t: np.ndarray  # (K,)
+    pos: np.ndarray  # (K,N,3)
+    vel: np.ndarray  # (K,N,3)
+    quat: np.ndarray  # (K,N,4) w,x,y,z
+
+
+def truth_at_epochs(ds: Dataset) -> Truth:
+    """Truth of every UAV at the epoch times k = 1..K (linear interpolation, quaternion nlerp)."""
+    meta = ds.meta
+    uavs = np.array(meta.uav_ids(), int)
+    K = meta.n_epochs()
+    t = np.array([meta.epoch_time(k) for k in range(1, K + 1)])
+    tr = ds.table("truth")
+    pos = np.full((K, len(uavs), 3), np.nan)
+    vel = np.full_like(pos, np.nan)
+    quat = np.full((K, len(uavs), 4), np.nan)
+    for j, u in enumerate(uavs):
+        m = tr["node"] == u
+        tt = tr["t"][m]
+        if len(tt) == 0:
+            continue
+        order = np.argsort(tt, kind="stable")
+        tt = tt[order]
+        inside = (t >= tt[0] - 1e-9) & (t <= tt[-1] + 1e-9)
+        for c, (arr, cols) in enumerate(((pos, ("pe", "pn", "pu")), (vel, ("ve", "vn", "vu")))):
+            for a, col in enumerate(cols):
+                arr[inside, j, a] = np.interp(t[inside], tt, tr[col][m][order])
+        q = np.column_stack([tr[c][m][order] for c in ("qw", "qx", "qy", "qz")])
+        # make consecutive quaternions same-signed before interpolating
+        s = np.sign(np.einsum("ij,ij->i", q[1:], q[:-1]))
+        s[s == 0] = 1
+        q = q * np.concatenate([[1.0], np.cumprod(s)])[:, None]
+        qi = np.column_stack([np.interp(t[inside], tt, q[:, a]) for a in range(4)])
+        quat[inside, j] = qi / np.linalg.norm(qi, axis=1, keepdims=True)
+    return Truth(uavs, t, pos, vel, quat)
+
+
+def _store(res: RunResult, i: int, j: int, e: NodeEstimate, links: list) -> None:
+    res.pos[i, j] = e.pos
+    res.vel[i, j] = e.vel
+    res.pos_cov[i, j] = e.pos_cov
+    if e.quat is not None:
+        res.quat[i, j] = e.quat
+    res.step_ms[i, j] = e.step_ms
+    res.rounds[i, j] = e.rounds
+    if e.delta_h_m is not None:
+        res.delta_h_m[i, j] = e.delta_h_m
+    if e.delta_l_m is not None:
+        res.delta_l_m[i, j] = e.delta_l_m
+    k = i + 1
+    for li in e.links:
+        links.append((k, e.uav, int(li.other), int(li.cls), float(li.residual_m), float(li.weight)))
+
+
+def run_algorithm(ds: Dataset, algo: str, seed: int, settings: dict,
+                  progress: Callable[[int, int], None] | None = None) -> RunResult:
+    """Run ``algo`` over every epoch of ``ds``; ``progress(k, K)`` is called after each epoch."""
+    meta = ds.meta
+    slicer = EpochSlicer(ds)
+    uavs = meta.uav_ids()
+    K = meta.n_epochs()
+    t = np.array([meta.epoch_time(k) for k in range(1, K + 1)])
+    res = RunResult.empty(algo, seed, uavs, t)
+    inits = initial_states(ds, seed)
+    links: list[tuple] = []
+    rounds = int(settings.get("rounds", 3))
+    tol = float(settings.get("convergence_m", 0.0))
+    t_start = time.perf_counter()
+    if registry.kind(algo) == "swarm":
+        est = registry.make_swarm(algo, meta, settings, inits)
+        for k in range(1, K + 1):
+            inputs = {u: slicer.epoch(k, u) for u in uavs}
+            labels = slicer.range_labels(k)
+            t0 = time.perf_counter()
+            out = est.step(inputs, labels)
+            dt_ms = (time.perf_counter() - t0) * 1e3
+            for j, u in enumerate(uavs):
+                e = out.get(u)
+                if e is None:
+                    continue
+                if not e.step_ms:
+                    e.step_ms = dt_ms  # the whole-swarm solve of this epoch
+                _store(res, k - 1, j, e, links)
+            if progress:
+                progress(k, K)
+    else:
+        nodes = {u: registry.make_node(algo, u, meta, settings, inits[u]) for u in uavs}
+        for k in range(1, K + 1):
+            gens = {u: node_epoch(nodes[u], slicer.epoch(k, u), rounds, tol) for u in uavs}
+            out = run_epoch_in_process(gens)
+            for j, u in enumerate(uavs):
+                _store(res, k - 1, j, out[u], links)
+            if progress:
+                progress(k, K)
+    res.wall_s = time.perf_counter() - t_start
+    res.links = np.array(links, dtype=LINK_DTYPE) if links else np.zeros(0, LINK_DTYPE)
+    return res
+
+
+def link_labels(ds: Dataset) -> np.ndarray:
+    """Fault labels per (epoch, unordered pair): records (k, a, b, fault_err_abs, kind).
+
+    Several range rows of one pair in one epoch (event-timestamped real data) are merged: the
+    largest |fault_err| counts, NaN (unknown) only if every row is unknown.
+    """
+    meta = ds.meta
+    r = ds.table("ranges")
+    dt = np.dtype([("k", np.int32), ("a", np.int32), ("b", np.int32), ("err", np.float64), ("kind", np.int16)])
+    if len(r["t"]) == 0:
+        return np.zeros(0, dt)
+    # epoch k covers (t_{k-1}, t_k]
+    k = np.ceil((r["t"] - meta.t_start) / meta.epoch_dt_s - 1e-9).astype(int)
+    k = np.maximum(k, 1)
+    a = np.minimum(r["a"], r["b"])
+    b = np.maximum(r["a"], r["b"])
+    err = np.abs(r["fault_err"])
+    best: dict[tuple[int, int, int], tuple[float, int]] = {}
+    for kk, aa, bb, ee, kind in zip(k.tolist(), a.tolist(), b.tolist(), err.tolist(), r["fault_kind"].tolist()):
+        key = (kk, aa, bb)
+        old = best.get(key)
+        if old is None or (np.isnan(old[0]) and not np.isnan(ee)) or (ee > old[0]):
+            best[key] = (ee, kind)
+    out = np.zeros(len(best), dt)
+    for i, (key, (ee, kind)) in enumerate(sorted(best.items())):
+        out[i] = (*key, ee, kind)
+    return out

@@ -1,0 +1,196 @@
+"""Metrics of DESIGN.md §4 on plain arrays. Pure: numpy only, no I/O.
+
+Definitions (the report's keys keep exactly these meanings):
+
+- **RMSE** (paper eq. 28), per ENU axis and 3-D, *pooled*: every (seed, epoch, UAV) sample counts
+  once — RMSE_axis = sqrt(mean e_axis²), RMSE_3d = sqrt(mean ‖e‖²) over all samples of all seeds
+  (not a mean of per-seed or per-UAV RMSEs). Samples without an estimate (NaN, e.g. a killed
+  node in a distributed run) are left out and counted in ``n_missing``.
+- **UAV 1** alone: the same pooling restricted to UAV id 1 (the paper's example UAV).
+- **outage / nominal**: the UAVs listed in any GNSS outage window; ``outage`` = their samples with
+  start_s <= t <= end_s of a window that lists them, ``nominal`` = the same UAVs' other samples.
+- **NEES** of 3-D position: e^T P^-1 e with the estimator's own 3×3 marginal, averaged over every
+  UAV, epoch and seed (expected value 3 for a consistent estimator). Non-positive-definite or
+  missing covariances are skipped and counted.
+- **Detection**, per classification decision: each UAV classifies each of its links each epoch
+  (both ends of a pair decide independently, so a link-epoch yields up to two decisions). A decision
+  is *positive* when the link is classified H1 or H0 (double threshold), or H0 only (single threshold
+  at Δh). Truth: the link-epoch is *faulty* when its labelled |fault_err| > fault_threshold_m, clean
+  otherwise; unknown labels (NaN) are not scored. precision = TP/(TP+FP), recall = TP/(TP+FN),
+  false-alarm rate = FP/(FP+TN); ``None`` when the denominator is 0.
+- **step_ms**: p50/p99 over every (UAV, epoch, seed) of the wall time the estimator spent.
+- **improvement_pct** = 100·(1 − RMSE_a / RMSE_b) on the swarm 3-D position RMSE.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+AXES = ("e", "n", "u")
+
+
+def rmse(err: np.ndarray) -> dict[str, float]:
+    """Pooled RMSE of error vectors ``err`` (..., 3): {"e","n","u","3d"}; NaN rows skipped."""
+    e = np.asarray(err, float).reshape(-1, 3)
+    e = e[np.all(np.isfinite(e), axis=1)]
+    if len(e) == 0:
+        return {a: None for a in (*AXES, "3d")}
+    out = {a: float(np.sqrt(np.mean(e[:, i] ** 2))) for i, a in enumerate(AXES)}
+    out["3d"] = float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
+    return out
+
+
+def rmse_masked(err: np.ndarray, mask: np.ndarray) -> dict[str, float]:
+    """Pooled RMSE over the samples where ``mask`` (same leading shape as err[..., 0]) is true."""
+    return rmse(np.asarray(err)[np.asarray(mask, bool)])
+
+
+def per_uav_rmse_3d(err: np.ndarray, uavs) -> dict[str, float]:
+    """{"<id>": 3-D RMSE} for err shaped (..., N, 3) (any leading axes: seeds, epochs)."""
+    e = np.asarray(err, float)
+    return {str(int(u)): rmse(e[..., j, :])["3d"] for j, u in enumerate(uavs)}
+
+
+def outage_masks(t: np.ndarray, uavs, windows) -> tuple[np.ndarray, np.ndarray] | None:
+    """(outage, nominal) boolean masks shaped (K, N), or None without outage windows.
+
+    ``windows``: objects or dicts with start_s, end_s, uavs (list of ids).
+    """
+    if not windows:
+        return None
+    t = np.asarray(t, float)
+    uavs = list(int(u) for u in uavs)
+    out = np.zeros((len(t), len(uavs)), bool)
+    affected = np.zeros(len(uavs), bool)
+    for w in windows:
+        get = (lambda k: w[k]) if isinstance(w, dict) else (lambda k: getattr(w, k))
+        inside = (t >= get("start_s")) & (t <= get("end_s"))
+        for u in get("uavs"):
+            if int(u) in uavs:
+                j = uavs.index(int(u))
+                affected[j] = True
+                out[:, j] |= inside
+    nominal = affected[None, :] & ~out
+    return out, nominal
+
+
+def nees(err: np.ndarray, cov: np.ndarray) -> tuple[float | None, int]:
+    """Mean 3-D position NEES over all samples; returns (mean, n_skipped)."""
+    e = np.asarray(err, float).reshape(-1, 3)
+    P = np.asarray(cov, float).reshape(-1, 3, 3)
+    ok = np.all(np.isfinite(e), axis=1) & np.all(np.isfinite(P), axis=(1, 2))
+    vals = []
+    skipped = int((~ok).sum())
+    if ok.any():
+        Pk = 0.5 * (P[ok] + np.transpose(P[ok], (0, 2, 1)))
+        ek = e[ok]
+        try:
+            L = np.linalg.cholesky(Pk)
+            z = np.linalg.solve(L, ek[..., None])[..., 0]
+            vals = np.sum(z**2, axis=1)
+        except np.linalg.LinAlgError:  # some not positive definite: fall back one by one
+            v = []
+            for Pi, ei in zip(Pk, ek):
+                try:
+                    Li = np.linalg.cholesky(Pi)
+                except np.linalg.LinAlgError:
+                    skipped += 1
+                    continue
+                zi = np.linalg.solve(Li, ei)
+                v.append(float(zi @ zi))
+            vals = np.array(v)
+    if len(vals) == 0:
+        return None, skipped
+    return float(np.mean(vals)), skipped
+
+
+def detection_counts(flagged: np.ndarray, faulty: np.ndarray) -> dict[str, int]:
+    f = np.asarray(flagged, bool)
+    y = np.asarray(faulty, bool)
+    return {"tp": int(np.sum(f & y)), "fp": int(np.sum(f & ~y)), "fn": int(np.sum(~f & y)), "tn": int(np.sum(~f & ~y))}
+
+
+def detection_scores(flagged: np.ndarray, faulty: np.ndarray) -> dict:
+    """precision / recall / false_alarm_rate (None when undefined) plus the raw counts."""
+    c = detection_counts(flagged, faulty)
+    div = lambda a, b: (a / b) if b else None  # noqa: E731
+    return {"precision": div(c["tp"], c["tp"] + c["fp"]), "recall": div(c["tp"], c["tp"] + c["fn"]),
+            "false_alarm_rate": div(c["fp"], c["fp"] + c["tn"]), **c}
+
+
+def match_links_to_labels(links: np.ndarray, labels: np.ndarray, threshold_m: float):
+    """Join classification decisions with link-epoch labels.
+
+    links: records with fields k, observer, other, cls (LINK_DTYPE); labels: records k, a, b, err
+    (see :func:`swarmnav.evaluation.link_labels`). Returns (cls, faulty) arrays of the decisions
+    that have a known label, and the number of decisions without one.
+    """
+    if len(links) == 0:
+        return np.zeros(0, int), np.zeros(0, bool), 0
+    lab = {(int(k), int(a), int(b)): float(e) for k, a, b, e in zip(labels["k"], labels["a"], labels["b"], labels["err"])}
+    cls, faulty = [], []
+    unlabelled = 0
+    for k, o, x, c in zip(links["k"].tolist(), links["observer"].tolist(), links["other"].tolist(), links["cls"].tolist()):
+        e = lab.get((k, min(o, x), max(o, x)))
+        if e is None or np.isnan(e):
+            unlabelled += 1
+            continue
+        cls.append(c)
+        faulty.append(e > threshold_m)
+    return np.array(cls, int), np.array(faulty, bool), unlabelled
+
+
+def detection_report(links: np.ndarray, labels: np.ndarray, threshold_m: float) -> tuple[dict | None, dict | None]:
+    """(double-threshold scores, single-threshold-at-Δh scores), None when nothing is scorable.
+
+    Double: positive = H1 or H0. Single at Δh: positive = H0 (residual above Δh)."""
+    cls, faulty, unlabelled = match_links_to_labels(links, labels, threshold_m)
+    if len(cls) == 0:
+        return None, None
+    double = detection_scores(cls <= 1, faulty)  # H0 = 0, H1 = 1
+    single = detection_scores(cls == 0, faulty)
+    double["n_unlabelled"] = single["n_unlabelled"] = unlabelled
+    return double, single
+
+
+def percentiles(x: np.ndarray, qs=(50, 99)) -> dict[str, float | None]:
+    v = np.asarray(x, float).ravel()
+    v = v[np.isfinite(v)]
+    return {f"p{q}": (float(np.percentile(v, q)) if len(v) else None) for q in qs}
+
+
+def improvement_pct(rmse_a: float | None, rmse_b: float | None) -> float | None:
+    """100·(1 − a/b): how much better algorithm a is than b (positive = a better)."""
+    if rmse_a is None or rmse_b is None or not rmse_b > 0:
+        return None
+    return float(100.0 * (1.0 - rmse_a / rmse_b))
+
+
+def algorithm_metrics(uavs, t, pos_err: list[np.ndarray], vel_err: list[np.ndarray], cov: list[np.ndarray],
+                      step_ms: list[np.ndarray], outage_windows=None) -> dict:
+    """The per-algorithm block of report.json from per-seed arrays (each (K,N,3) / (K,N,3,3) / (K,N)).
+
+    Seeds are pooled by concatenation, so every (seed, epoch, UAV) sample weighs the same.
+    """
+    uavs = [int(u) for u in uavs]
+    pe = np.stack(pos_err)  # (S,K,N,3)
+    ve = np.stack(vel_err)
+    out: dict = {"pos_rmse_m": rmse(pe), "vel_rmse_mps": rmse(ve)}
+    out["uav1_pos_rmse_m"] = rmse(pe[:, :, uavs.index(1)]) if 1 in uavs else {a: None for a in (*AXES, "3d")}
+    out["uav1_vel_rmse_mps"] = rmse(ve[:, :, uavs.index(1)]) if 1 in uavs else {a: None for a in (*AXES, "3d")}
+    out["per_uav_pos_rmse_m"] = per_uav_rmse_3d(pe, uavs)
+    masks = outage_masks(t, uavs, outage_windows)
+    if masks is not None:
+        mo, mn = masks
+        S = pe.shape[0]
+        out["outage_pos_rmse_m"] = rmse_masked(pe, np.broadcast_to(mo, (S, *mo.shape)))
+        out["nominal_pos_rmse_m"] = rmse_masked(pe, np.broadcast_to(mn, (S, *mn.shape)))
+        out["outage_vel_rmse_mps"] = rmse_masked(ve, np.broadcast_to(mo, (S, *mo.shape)))
+        out["nominal_vel_rmse_mps"] = rmse_masked(ve, np.broadcast_to(mn, (S, *mn.shape)))
+    n, skipped = nees(pe, np.stack(cov))
+    out["nees"] = n
+    out["nees_skipped"] = skipped
+    out["step_ms"] = percentiles(np.stack(step_ms), (50, 99))
+    out["n_samples"] = int(np.all(np.isfinite(pe), axis=-1).sum())
+    out["n_missing"] = int((~np.all(np.isfinite(pe), axis=-1)).sum())
+    return out

@@ -1,0 +1,265 @@
+"""report.json (DESIGN.md §5 contract, schema "swarmnav.report/1") and report.md. Pure: dicts and strings.
+
+:func:`build_report` assembles the dict from per-algorithm metric blocks (see
+:func:`swarmnav.metrics.algorithm_metrics`) and what the caller measured (thresholds, detection,
+provenance, events); :func:`validate_report` checks the contract's required keys;
+:func:`render_markdown` lays it out like the paper's Table 2 (position RMSE per algorithm, E/N/U)
+and Table 3 (normal vs GNSS-denied), plus our extra columns.
+"""
+
+from __future__ import annotations
+
+import math
+
+SCHEMA = "swarmnav.report/1"
+ENU3 = ("e", "n", "u", "3d")
+IMPROVEMENT_PAIRS = (("atvfg", "fg"), ("atvfg", "fkf"), ("atvfg", "ins"), ("atvfg", "central"))
+ALGO_ORDER = ("fkf", "fg", "atvfg", "ins", "central")  # the paper's Table 2 order first
+
+
+def _clean(x):
+    """JSON-safe: NaN/inf -> None, numpy scalars -> python."""
+    if isinstance(x, dict):
+        return {str(k): _clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_clean(v) for v in x]
+    if hasattr(x, "item") and not isinstance(x, (str, bytes)):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def build_report(*, mode: str, scenario: str, seeds: list[int], n_uavs: int, duration_s: float,
+                 algorithms: dict[str, dict], detection: dict | None, detection_single: dict | None,
+                 delta_l_m: float | None, delta_h_m: dict, provenance: dict, events: list[dict],
+                 extra: dict | None = None) -> dict:
+    """The report.json dict. ``algorithms[name]`` are metric blocks; ``detection`` (double threshold)
+    is attached to ``atvfg`` only; improvement keys exist only when both algorithms ran."""
+    from .metrics import improvement_pct
+
+    if mode not in ("in-process", "distributed"):
+        raise ValueError(f"mode must be 'in-process' or 'distributed', not {mode!r}")
+    algos = {}
+    for name in sorted(algorithms, key=lambda a: (ALGO_ORDER.index(a) if a in ALGO_ORDER else 99, a)):
+        block = dict(algorithms[name])
+        if name == "atvfg":
+            block["detection"] = detection
+        algos[name] = block
+    imp = {}
+    for a, b in IMPROVEMENT_PAIRS:
+        if a in algos and b in algos:
+            imp[f"{a}_vs_{b}"] = improvement_pct(algos[a]["pos_rmse_m"]["3d"], algos[b]["pos_rmse_m"]["3d"])
+    rep = {
+        "schema": SCHEMA,
+        "mode": mode,
+        "scenario": scenario,
+        "seeds": [int(s) for s in seeds],
+        "n_uavs": int(n_uavs),
+        "duration_s": float(duration_s),
+        "algorithms": algos,
+        "improvement_pct": imp,
+        "detection_single_threshold": detection_single,
+        "thresholds": {"delta_l_m": delta_l_m, "delta_h_m": dict(delta_h_m)},
+        "provenance": provenance,
+        "events": [{"t": float(e["t"]), "kind": str(e["kind"]), "uav": int(e["uav"])} for e in events],
+    }
+    if extra:
+        for k, v in extra.items():
+            rep.setdefault(k, v)
+    return _clean(rep)
+
+
+def validate_report(rep: dict) -> list[str]:
+    """Problems with ``rep`` against the §5 contract (empty list = valid)."""
+    errs: list[str] = []
+
+    def need(d, key, where):
+        if not isinstance(d, dict) or key not in d:
+            errs.append(f"missing {where}{key}")
+            return None
+        return d[key]
+
+    for k in ("schema", "mode", "scenario", "seeds", "n_uavs", "duration_s", "algorithms", "improvement_pct",
+              "detection_single_threshold", "thresholds", "provenance", "events"):
+        need(rep, k, "")
+    if rep.get("schema") != SCHEMA:
+        errs.append(f"schema is {rep.get('schema')!r}, expected {SCHEMA!r}")
+    if rep.get("mode") not in ("in-process", "distributed"):
+        errs.append(f"mode {rep.get('mode')!r} invalid")
+    if not isinstance(rep.get("seeds"), list) or not all(isinstance(s, int) for s in rep.get("seeds") or [None]):
+        errs.append("seeds must be a non-empty list of int")
+    for name, a in (rep.get("algorithms") or {}).items():
+        w = f"algorithms.{name}."
+        for blk in ("pos_rmse_m", "vel_rmse_mps", "uav1_pos_rmse_m"):
+            d = need(a, blk, w)
+            for ax in ENU3:
+                if d is not None:
+                    need(d, ax, f"{w}{blk}.")
+        need(a, "per_uav_pos_rmse_m", w)
+        need(a, "nees", w)
+        st = need(a, "step_ms", w)
+        if st is not None:
+            need(st, "p50", f"{w}step_ms.")
+            need(st, "p99", f"{w}step_ms.")
+        for blk in ("outage_pos_rmse_m", "nominal_pos_rmse_m"):
+            if blk in a:
+                for ax in ENU3:
+                    need(a[blk], ax, f"{w}{blk}.")
+        if name == "atvfg":
+            det = need(a, "detection", w)
+            if det is not None:
+                for k in ("precision", "recall", "false_alarm_rate"):
+                    need(det, k, f"{w}detection.")
+    algos = rep.get("algorithms") or {}
+    for a, b in (("atvfg", "fg"), ("atvfg", "fkf")):
+        key = f"{a}_vs_{b}"
+        if a in algos and b in algos:
+            need(rep.get("improvement_pct"), key, "improvement_pct.")
+        elif key in (rep.get("improvement_pct") or {}):
+            errs.append(f"improvement_pct.{key} present although {a} or {b} did not run")
+    dst = rep.get("detection_single_threshold")
+    if dst is not None:
+        for k in ("precision", "recall", "false_alarm_rate"):
+            need(dst, k, "detection_single_threshold.")
+    th = rep.get("thresholds") or {}
+    need(th, "delta_l_m", "thresholds.")
+    dh = need(th, "delta_h_m", "thresholds.")
+    if dh is not None:
+        need(dh, "p50", "thresholds.delta_h_m.")
+        need(dh, "p95", "thresholds.delta_h_m.")
+    pv = rep.get("provenance") or {}
+    for k in ("git", "config_sha256", "packages"):
+        need(pv, k, "provenance.")
+    for i, e in enumerate(rep.get("events") or []):
+        for k in ("t", "kind", "uav"):
+            need(e, k, f"events[{i}].")
+    return errs
+
+
+# -- markdown -----------------------------------------------------------------------------------
+
+
+def _f(x, nd=2) -> str:
+    if x is None:
+        return "—"
+    if isinstance(x, float):
+        return f"{x:.{nd}f}"
+    return str(x)
+
+
+def _pct(x) -> str:
+    return "—" if x is None else f"{100 * x:.1f} %"
+
+
+def render_markdown(rep: dict) -> str:
+    algos = rep["algorithms"]
+    L: list[str] = []
+    L.append(f"# swarmnav report — {rep['scenario']} ({rep['mode']})")
+    L.append("")
+    L.append(f"Seeds {rep['seeds']}, {rep['n_uavs']} UAVs, {rep['duration_s']:g} s. "
+             "RMSE pooled over UAVs, epochs and seeds (paper eq. 28, DESIGN.md §4).")
+    if "central" in algos:
+        L.append("`central` is an **oracle**: one joint graph with the truly faulty links removed using the labels.")
+    L.append("")
+    L.append("## Table 2 — position RMSE of each algorithm (m)")
+    L.append("")
+    L.append("| Algorithm | E | N | U | 3-D | UAV 1 E | UAV 1 N | UAV 1 U | UAV 1 3-D | vel 3-D (m/s) | NEES (3) | step p50 (ms) | step p99 (ms) |")
+    L.append("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for name, a in algos.items():
+        p, u1, v = a["pos_rmse_m"], a["uav1_pos_rmse_m"], a["vel_rmse_mps"]
+        L.append(f"| {name} | {_f(p['e'])} | {_f(p['n'])} | {_f(p['u'])} | **{_f(p['3d'])}** | {_f(u1['e'])} | "
+                 f"{_f(u1['n'])} | {_f(u1['u'])} | {_f(u1['3d'])} | {_f(v['3d'], 3)} | {_f(a['nees'])} | "
+                 f"{_f(a['step_ms']['p50'])} | {_f(a['step_ms']['p99'])} |")
+    L.append("")
+    L.append("### Velocity RMSE (m/s)")
+    L.append("")
+    L.append("| Algorithm | E | N | U | 3-D |")
+    L.append("|---|---:|---:|---:|---:|")
+    for name, a in algos.items():
+        v = a["vel_rmse_mps"]
+        L.append(f"| {name} | {_f(v['e'], 3)} | {_f(v['n'], 3)} | {_f(v['u'], 3)} | {_f(v['3d'], 3)} |")
+    if any("outage_pos_rmse_m" in a for a in algos.values()):
+        L.append("")
+        L.append("## Table 3 — normal vs GNSS-denied (UAVs that lose GNSS; inside vs outside the outage windows)")
+        L.append("")
+        L.append("| Algorithm | pos normal E | N | U | 3-D | pos denied E | N | U | 3-D | denied/normal | vel normal 3-D | vel denied 3-D |")
+        L.append("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+        for name, a in algos.items():
+            if "outage_pos_rmse_m" not in a:
+                continue
+            nm, ou = a["nominal_pos_rmse_m"], a["outage_pos_rmse_m"]
+            ratio = (ou["3d"] / nm["3d"]) if (ou["3d"] is not None and nm["3d"]) else None
+            vn = (a.get("nominal_vel_rmse_mps") or {}).get("3d")
+            vo = (a.get("outage_vel_rmse_mps") or {}).get("3d")
+            L.append(f"| {name} | {_f(nm['e'])} | {_f(nm['n'])} | {_f(nm['u'])} | {_f(nm['3d'])} | {_f(ou['e'])} | "
+                     f"{_f(ou['n'])} | {_f(ou['u'])} | {_f(ou['3d'])} | {_f(ratio)} | {_f(vn, 3)} | {_f(vo, 3)} |")
+    if rep["improvement_pct"]:
+        L.append("")
+        L.append("## Improvement of atvfg (swarm 3-D position RMSE)")
+        L.append("")
+        L.append("| Comparison | Improvement | Paper |")
+        L.append("|---|---:|---:|")
+        paper = {"atvfg_vs_fg": "47.4 %", "atvfg_vs_fkf": "52.6 %"}
+        for k, v in rep["improvement_pct"].items():
+            L.append(f"| {k.replace('_', ' ')} | {_f(v, 1)} % | {paper.get(k, '—')} |")
+    det = (algos.get("atvfg") or {}).get("detection")
+    single = rep.get("detection_single_threshold")
+    if det or single:
+        L.append("")
+        L.append("## Fault detection (atvfg), per link classification vs labels")
+        L.append("")
+        L.append("| Test | Precision | Recall | False-alarm rate | TP | FP | FN | TN |")
+        L.append("|---|---:|---:|---:|---:|---:|---:|---:|")
+        for label, d in (("double threshold (H0 or H1)", det), ("single threshold at Δh (H0)", single)):
+            if d:
+                L.append(f"| {label} | {_pct(d['precision'])} | {_pct(d['recall'])} | {_pct(d['false_alarm_rate'])} | "
+                         f"{d.get('tp', '—')} | {d.get('fp', '—')} | {d.get('fn', '—')} | {d.get('tn', '—')} |")
+    th = rep["thresholds"]
+    L.append("")
+    L.append(f"Thresholds: Δl = {_f(th['delta_l_m'], 3)} m; Δh p50 = {_f(th['delta_h_m'].get('p50'), 3)} m, "
+             f"p95 = {_f(th['delta_h_m'].get('p95'), 3)} m.")
+    L.append("")
+    L.append("## Per-UAV 3-D position RMSE (m)")
+    L.append("")
+    names = list(algos)
+    ids = sorted({int(i) for a in algos.values() for i in a["per_uav_pos_rmse_m"]})
+    L.append("| UAV | " + " | ".join(names) + " |")
+    L.append("|---:|" + "---:|" * len(names))
+    for i in ids:
+        L.append(f"| {i} | " + " | ".join(_f(algos[n]["per_uav_pos_rmse_m"].get(str(i))) for n in names) + " |")
+    L.append("")
+    L.append("## Events")
+    L.append("")
+    if rep["events"]:
+        for e in rep["events"]:
+            L.append(f"- t = {e['t']:g} s: {e['kind']} UAV {e['uav']}")
+    else:
+        L.append("none" + (" (process kills and restarts happen only in distributed runs)" if rep["mode"] == "in-process" else ""))
+    pv = rep["provenance"]
+    L.append("")
+    L.append("## Provenance")
+    L.append("")
+    L.append(f"git `{pv.get('git')}`, config sha256 `{pv.get('config_sha256')}`")
+    L.append("")
+    L.append(", ".join(f"{k} {v}" for k, v in sorted((pv.get("packages") or {}).items())))
+    L.append("")
+    return "\n".join(L)
+
+
+def summary_table(rep: dict) -> str:
+    """A compact fixed-width table for stdout."""
+    hdr = f"{'algo':<8} {'pos3d[m]':>9} {'vel3d[m/s]':>10} {'uav1[m]':>8} {'NEES':>7} {'p50[ms]':>8} {'p99[ms]':>8}  detection P/R/FA"
+    rows = [hdr, "-" * len(hdr)]
+    for name, a in rep["algorithms"].items():
+        det = a.get("detection")
+        dtxt = "" if not det else f"{_pct(det['precision'])} / {_pct(det['recall'])} / {_pct(det['false_alarm_rate'])}"
+        rows.append(f"{name:<8} {_f(a['pos_rmse_m']['3d']):>9} {_f(a['vel_rmse_mps']['3d'], 3):>10} "
+                    f"{_f(a['uav1_pos_rmse_m']['3d']):>8} {_f(a['nees']):>7} {_f(a['step_ms']['p50']):>8} "
+                    f"{_f(a['step_ms']['p99']):>8}  {dtxt}")
+    s = rep.get("detection_single_threshold")
+    if s:
+        rows.append(f"single threshold at Δh: P/R/FA {_pct(s['precision'])} / {_pct(s['recall'])} / {_pct(s['false_alarm_rate'])}")
+    for k, v in rep["improvement_pct"].items():
+        rows.append(f"improvement {k}: {_f(v, 1)} %")
+    return "\n".join(rows)

@@ -1,0 +1,161 @@
+"""Metrics on hand-computed examples (DESIGN.md §4 definitions)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from swarmnav import metrics as M
+from swarmnav.evaluation import LINK_DTYPE
+
+
+def test_rmse_axes_and_3d():
+    e = np.array([[3.0, 0.0, 0.0], [0.0, 4.0, 0.0]])
+    r = M.rmse(e)
+    assert r["e"] == pytest.approx(math.sqrt(9 / 2))
+    assert r["n"] == pytest.approx(math.sqrt(16 / 2))
+    assert r["u"] == 0.0
+    assert r["3d"] == pytest.approx(math.sqrt((9 + 16) / 2))
+
+
+def test_rmse_pools_samples_not_rmses():
+    # seed A: 1 sample of error 1; seed B: 3 samples of error 3 -> pooled sqrt((1+27)/4) = sqrt(7),
+    # not the mean of per-seed RMSEs (2) nor their RMS (sqrt(5))
+    a = np.array([[[1.0, 0, 0]]])  # (K=1, N=1, 3)
+    b = np.array([[[3.0, 0, 0]], [[3.0, 0, 0]], [[3.0, 0, 0]]])
+    pooled = M.rmse(np.concatenate([a.reshape(-1, 3), b.reshape(-1, 3)]))
+    assert pooled["3d"] == pytest.approx(math.sqrt(7))
+
+
+def test_rmse_skips_nan_and_all_nan_is_none():
+    e = np.array([[1.0, 1.0, 1.0], [np.nan, 0, 0]])
+    assert M.rmse(e)["3d"] == pytest.approx(math.sqrt(3))
+    assert M.rmse(np.full((2, 3), np.nan))["3d"] is None
+
+
+def test_algorithm_metrics_pooling_uav1_per_uav():
+    uavs = [1, 2]
+    t = np.array([1.0, 2.0])
+    # seed 1: uav1 errors (1,0,0),(1,0,0); uav2 (0,2,0),(0,2,0); seed 2: uav1 (3,0,0) x2, uav2 0
+    e1 = np.array([[[1, 0, 0], [0, 2, 0]], [[1, 0, 0], [0, 2, 0]]], float)
+    e2 = np.array([[[3, 0, 0], [0, 0, 0]], [[3, 0, 0], [0, 0, 0]]], float)
+    cov = np.broadcast_to(np.eye(3), (2, 2, 3, 3)).copy()
+    step = np.array([[1.0, 2.0], [3.0, 100.0]])
+    m = M.algorithm_metrics(uavs, t, [e1, e2], [e1 * 0, e2 * 0], [cov, cov], [step, step])
+    assert m["pos_rmse_m"]["3d"] == pytest.approx(math.sqrt((1 + 1 + 4 + 4 + 9 + 9 + 0 + 0) / 8))
+    assert m["pos_rmse_m"]["e"] == pytest.approx(math.sqrt((1 + 1 + 9 + 9) / 8))
+    assert m["uav1_pos_rmse_m"]["3d"] == pytest.approx(math.sqrt((1 + 1 + 9 + 9) / 4))
+    assert m["per_uav_pos_rmse_m"] == {"1": pytest.approx(math.sqrt(5)), "2": pytest.approx(math.sqrt(2))}
+    # NEES with identity covariance = squared error norm, averaged
+    assert m["nees"] == pytest.approx((1 + 1 + 4 + 4 + 9 + 9) / 8)
+    assert m["step_ms"]["p50"] == pytest.approx(2.5)
+    assert m["step_ms"]["p99"] == pytest.approx(np.percentile([1, 2, 3, 100] * 2, 99))
+    assert "outage_pos_rmse_m" not in m
+
+
+def test_nees_uses_covariance():
+    e = np.array([[2.0, 0, 0], [0, 0, 3.0]])
+    P = np.array([np.diag([4.0, 1, 1]), np.diag([1.0, 1, 9])])
+    n, skipped = M.nees(e, P)
+    assert n == pytest.approx(1.0) and skipped == 0
+    # a full covariance: e^T P^-1 e
+    P2 = np.array([[2.0, 1, 0], [1, 2, 0], [0, 0, 1]])
+    e2 = np.array([1.0, 1.0, 0.0])
+    assert M.nees(e2[None], P2[None])[0] == pytest.approx(e2 @ np.linalg.solve(P2, e2))
+
+
+def test_nees_skips_singular_and_nan():
+    e = np.array([[1.0, 0, 0], [1.0, 0, 0], [np.nan, 0, 0]])
+    P = np.array([np.eye(3), np.zeros((3, 3)), np.eye(3)])
+    n, skipped = M.nees(e, P)
+    assert n == pytest.approx(1.0) and skipped == 2
+
+
+def test_outage_masks():
+    t = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
+    windows = [{"start_s": 2.0, "end_s": 3.0, "uavs": [2]}]
+    out, nom = M.outage_masks(t, [1, 2, 3], windows)
+    assert out[:, 1].tolist() == [False, True, True, False, False]
+    assert nom[:, 1].tolist() == [True, False, False, True, True]
+    assert not out[:, [0, 2]].any() and not nom[:, [0, 2]].any()  # UAVs that keep GNSS are in neither
+    assert M.outage_masks(t, [1], []) is None
+
+
+def test_outage_rmse_in_algorithm_metrics():
+    t = np.array([1.0, 2.0, 3.0])
+    e = np.zeros((3, 2, 3))
+    e[1, 1] = [0, 0, 6.0]  # UAV 2 during its outage
+    e[0, 1] = [0, 0, 2.0]  # UAV 2 nominal
+    e[:, 0] = [5.0, 0, 0]  # UAV 1 never loses GNSS: in neither figure
+    cov = np.broadcast_to(np.eye(3), (3, 2, 3, 3))
+    m = M.algorithm_metrics([1, 2], t, [e], [e], [cov], [np.ones((3, 2))],
+                            [{"start_s": 2.0, "end_s": 2.0, "uavs": [2]}])
+    assert m["outage_pos_rmse_m"]["3d"] == pytest.approx(6.0)
+    assert m["outage_pos_rmse_m"]["u"] == pytest.approx(6.0)
+    assert m["nominal_pos_rmse_m"]["3d"] == pytest.approx(math.sqrt(4 / 2))
+
+
+def _links(rows):
+    return np.array([(k, o, x, c, 0.0, 1.0) for k, o, x, c in rows], dtype=LINK_DTYPE)
+
+
+def _labels(rows):
+    dt = np.dtype([("k", np.int32), ("a", np.int32), ("b", np.int32), ("err", np.float64), ("kind", np.int16)])
+    return np.array([(k, a, b, e, 0) for k, a, b, e in rows], dtype=dt)
+
+
+def test_detection_counts_double_and_single():
+    thr = 0.3
+    labels = _labels([(1, 1, 2, 5.0), (1, 1, 3, 0.1), (1, 2, 3, 50.0), (2, 1, 2, 0.0), (2, 1, 3, np.nan)])
+    links = _links([
+        (1, 1, 2, 1),  # faulty (5 m), H1: detected by double, missed by single
+        (1, 2, 1, 2),  # same link seen from UAV 2, H2: missed
+        (1, 1, 3, 0),  # clean (0.1 m), H0: false alarm in both
+        (1, 3, 2, 0),  # faulty (50 m), H0: detected by both (pair looked up unordered)
+        (2, 2, 1, 2),  # clean, H2: true negative
+        (2, 1, 2, 1),  # clean, H1: false alarm for double only
+        (2, 1, 3, 0),  # unknown label: not scored
+        (3, 1, 2, 0),  # no label row at all: not scored
+    ])
+    d, s = M.detection_report(links, labels, thr)
+    assert (d["tp"], d["fp"], d["fn"], d["tn"]) == (2, 2, 1, 1)
+    assert d["precision"] == pytest.approx(2 / 4)
+    assert d["recall"] == pytest.approx(2 / 3)
+    assert d["false_alarm_rate"] == pytest.approx(2 / 3)
+    assert (s["tp"], s["fp"], s["fn"], s["tn"]) == (1, 1, 2, 2)
+    assert s["recall"] == pytest.approx(1 / 3)
+    assert s["false_alarm_rate"] == pytest.approx(1 / 3)
+    assert d["n_unlabelled"] == 2
+
+
+def test_detection_undefined_is_none():
+    s = M.detection_scores(np.array([False, False]), np.array([False, False]))
+    assert s["precision"] is None and s["recall"] is None and s["false_alarm_rate"] == 0.0
+    assert M.detection_report(np.zeros(0, LINK_DTYPE), _labels([]), 0.3) == (None, None)
+
+
+def test_improvement_pct():
+    assert M.improvement_pct(5.0, 10.0) == pytest.approx(50.0)
+    assert M.improvement_pct(12.0, 10.0) == pytest.approx(-20.0)
+    assert M.improvement_pct(None, 10.0) is None and M.improvement_pct(1.0, 0.0) is None
+
+
+def test_link_labels_merge_rows_per_epoch():
+    from swarmnav.evaluation import link_labels
+
+    class _Meta:
+        t_start = 0.0
+        epoch_dt_s = 1.0
+
+    class _DS:
+        meta = _Meta()
+
+        def table(self, name):
+            return {"t": np.array([0.5, 0.9, 1.0, 1.5]), "a": np.array([2, 1, 1, 1]), "b": np.array([1, 2, 3, 2]),
+                    "fault_err": np.array([0.1, -4.0, np.nan, 0.0]), "fault_kind": np.array([0, 1, 0, 0])}
+
+    lab = link_labels(_DS())
+    got = {(int(k), int(a), int(b)): float(e) for k, a, b, e, _ in lab.tolist()}
+    assert got[(1, 1, 2)] == 4.0  # two rows in (0, 1]: the larger |err|
+    assert math.isnan(got[(1, 1, 3)])  # t = 1.0 belongs to epoch 1 ((0, 1])
+    assert got[(2, 1, 2)] == 0.0
