@@ -1,11 +1,460 @@
-"""`swarmnav evaluate` (not implemented yet)."""
+"""`swarmnav evaluate`: run estimators in-process (in-memory transport of the one epoch protocol).
 
-HELP = "evaluate (not implemented yet)"
+Thin adapter: datasets (simulated per seed, or one directory as-is) -> swarmnav.evaluation (pure)
+-> swarmnav.metrics / swarmnav.report (pure) -> files: report.json, report.md, figures/*.png,
+traj/<algo>/uav<id>.tum (+ traj/truth), evaluate.rrd, evaluate.log.
+
+Algorithm × seed runs are spread over ``--jobs`` worker processes (fork; OMP/BLAS limited to one
+thread each). Estimation is identical to the distributed run: same ``initial_states(ds, seed)``,
+the same settings dict (``swarmnav.estimators.registry.estimator_settings``), UAVs in sorted order.
+With ``--dataset`` the seed only drives the initial-state draw; it defaults to the dataset's seed.
+Multi-seed runs pool every metric over the seeds; figures, TUM files at ``traj/<algo>/`` and the
+.rrd show the first seed (other seeds' TUM files go to ``traj/seed<N>/<algo>/``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+import time
+import traceback
+from pathlib import Path
+
+HELP = "run estimators in-process over simulated seeds or a dataset; write report, figures, TUM, .rrd"
+DESCRIPTION = __doc__
+ALL_ALGOS = "atvfg,fg,fkf,ins,central"
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+log = logging.getLogger("swarmnav.evaluate")
+
+
+def parse_seeds(text: str) -> list[int]:
+    """'1-5' -> [1..5]; '1,3,7' -> [1,3,7]; mixes like '1-3,7' allowed; sorted, duplicates removed."""
+    from swarmnav.errors import ConfigError
+
+    out: set[int] = set()
+    for part in str(text).replace(" ", "").split(","):
+        if not part:
+            continue
+        try:
+            if "-" in part[1:]:
+                i = part.index("-", 1)
+                lo, hi = int(part[:i]), int(part[i + 1:])
+                if hi < lo:
+                    raise ValueError
+                out.update(range(lo, hi + 1))
+            else:
+                out.add(int(part))
+        except ValueError:
+            raise ConfigError(f"--seeds: cannot parse {part!r} (use e.g. 1-5, 1,3,7 or 1-3,7)") from None
+    if not out:
+        raise ConfigError("--seeds: no seed given")
+    if min(out) < 0:
+        raise ConfigError("--seeds: seeds must be >= 0")
+    return sorted(out)
+
+
+def parse_algos(text: str) -> list[str]:
+    from swarmnav.errors import ConfigError
+    from swarmnav.estimators import registry
+
+    algos = []
+    for a in text.split(","):
+        a = a.strip()
+        if not a:
+            continue
+        if a not in registry.known():
+            raise ConfigError(f"--algos: unknown algorithm {a!r}; known: {', '.join(registry.known())}")
+        if a not in algos:
+            algos.append(a)
+    if not algos:
+        raise ConfigError("--algos: no algorithm given")
+    return algos
 
 
 def add_arguments(p):
-    pass
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--config", help="scenario TOML; each seed's dataset is simulated exactly as `simulate --seed N`")
+    src.add_argument("--dataset", help="dataset directory, used as-is (simulated or imported real data)")
+    p.add_argument("--algos", default=ALL_ALGOS, help=f"comma-separated algorithms (default {ALL_ALGOS})")
+    p.add_argument("--seeds", default=None, help="seeds: 1-5, 1,3,7 or mixes (default: the config's / dataset's seed)")
+    p.add_argument("--out", default="runs/evaluate", help="output directory (default runs/evaluate)")
+    p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes (default 2)")
+    p.add_argument("--no-rrd", action="store_true", help="skip the Rerun recording")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+# -- worker side (fork: datasets and settings are inherited, not pickled) -------------------------
+
+_DATASETS: dict = {}
+_SETTINGS: dict = {}
+_QUEUE = None
+
+
+def _limit_threads():
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    except Exception:  # noqa: BLE001 - optional
+        pass
+
+
+def _run_task(task):
+    tid, algo, seed = task
+    from swarmnav.evaluation import run_algorithm
+
+    q = _QUEUE
+    last = [0]
+
+    def prog(k, K):
+        if q is not None and (k - last[0] >= max(1, K // 100) or k == K):
+            q.put((tid, k - last[0]))
+            last[0] = k
+
+    try:
+        return tid, run_algorithm(_DATASETS[seed], algo, seed, _SETTINGS, prog), None
+    except Exception:  # noqa: BLE001 - reported by the parent
+        return tid, None, traceback.format_exc()
+
+
+def _simulate(args_tuple):
+    cfg_path, seed = args_tuple
+    from swarmnav.config import load_config
+    from swarmnav.sim import simulate
+
+    return seed, simulate(load_config(cfg_path), seed)
+
+
+# -- main ---------------------------------------------------------------------------------------
+
+
+def _setup_log(out: Path) -> logging.Handler:
+    h = logging.FileHandler(out / "evaluate.log", mode="w")
+    h.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+    root = logging.getLogger("swarmnav")
+    root.setLevel(logging.INFO)
+    root.addHandler(h)
+    return h
+
+
+def _load_inputs(args):
+    """-> (scenario_name, seeds, settings, config_sha256, datasets by seed, outage windows)."""
+    from swarmnav.dataset import Dataset
+    from swarmnav.estimators import registry
+
+    if args.config:
+        from swarmnav.config import load_config
+
+        cfg_path = Path(args.config)
+        sc = load_config(cfg_path)
+        seeds = parse_seeds(args.seeds) if args.seeds else [sc.scenario.seed]
+        settings = registry.estimator_settings(sc.estimation, base_dirs=(cfg_path.resolve().parent.parent, cfg_path.resolve().parent))
+        return sc.scenario.name, seeds, settings, sc.sha256(), None, cfg_path
+    from services.provenance import dataset_sha256
+
+    ds = Dataset.read(args.dataset)
+    seeds = parse_seeds(args.seeds) if args.seeds else [ds.meta.seed if ds.meta.seed is not None else 0]
+    settings = registry.settings_for_dataset(ds.meta)
+    return ds.meta.name, seeds, settings, dataset_sha256(ds.meta), ds, None
 
 
 def run(args) -> int:
-    raise SystemExit("swarmnav evaluate: not implemented yet")
+    global _SETTINGS, _QUEUE
+    import multiprocessing as mp
+
+    import numpy as np
+
+    t_wall = time.perf_counter()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    handler = _setup_log(out)
+    algos = parse_algos(args.algos)
+    name, seeds, settings, cfg_sha, ds_given, cfg_path = _load_inputs(args)
+    _SETTINGS = settings
+    log.info("evaluate %s: algos=%s seeds=%s settings=%s", name, algos, seeds, settings)
+    quiet = bool(args.quiet)
+    jobs = max(1, int(args.jobs))
+    ctx = mp.get_context("fork")
+
+    # 1. datasets
+    _DATASETS.clear()
+    if ds_given is not None:
+        for s in seeds:
+            _DATASETS[s] = ds_given
+    else:
+        t0 = time.perf_counter()
+        todo = [(str(cfg_path), s) for s in seeds]
+        if len(todo) > 1 and jobs > 1:
+            with ctx.Pool(min(jobs, len(todo)), initializer=_limit_threads) as pool:
+                for s, ds in pool.imap_unordered(_simulate, todo):
+                    _DATASETS[s] = ds
+        else:
+            for item in todo:
+                s, ds = _simulate(item)
+                _DATASETS[s] = ds
+        log.info("simulated %d seed(s) in %.1f s", len(seeds), time.perf_counter() - t0)
+        if not quiet:
+            print(f"simulated {len(seeds)} seed(s) in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    meta = _DATASETS[seeds[0]].meta
+
+    # 2. runs: longest first so the two workers finish together
+    cost = {"central": 0, "atvfg": 1, "fg": 2, "fkf": 3, "ins": 4}
+    tasks = [(i, a, s) for i, (a, s) in enumerate(sorted(((a, s) for a in algos for s in seeds),
+                                                          key=lambda x: (cost.get(x[0], 5), x[1])))]
+    K = meta.n_epochs()
+    results: dict[tuple[str, int], object] = {}
+    failures: dict[str, str] = {}
+    bars = {}
+    from tqdm import tqdm
+
+    def handle(tid, res, err):
+        _, a, s = tasks[tid]
+        if err:
+            failures[f"{a}/seed{s}"] = err.strip().splitlines()[-1]
+            log.error("%s seed %d failed:\n%s", a, s, err)
+            print(f"swarmnav evaluate: {a} seed {s} FAILED: {failures[f'{a}/seed{s}']}", file=sys.stderr)
+        else:
+            results[(a, s)] = res
+            log.info("%s seed %d: %.1f s wall", a, s, res.wall_s)
+
+    if jobs == 1 or len(tasks) == 1:
+        _QUEUE = None
+        for tid, a, s in tasks:
+            bar = tqdm(total=K, desc=f"{a:>7} seed {s}", disable=quiet, leave=True)
+            from swarmnav.evaluation import run_algorithm
+
+            try:
+                res = run_algorithm(_DATASETS[s], a, s, settings, lambda k, KK: bar.update(1))
+                handle(tid, res, None)
+            except Exception:  # noqa: BLE001
+                handle(tid, None, traceback.format_exc())
+            bar.close()
+    else:
+        _QUEUE = ctx.Queue()
+        with ctx.Pool(min(jobs, len(tasks)), initializer=_limit_threads) as pool:
+            pending = [pool.apply_async(_run_task, (t,)) for t in tasks]
+            for pos, (tid, a, s) in enumerate(tasks):
+                bars[tid] = tqdm(total=K, desc=f"{a:>7} seed {s}", position=pos, disable=quiet, leave=True)
+            import queue as _q
+
+            while pending:
+                try:
+                    while True:
+                        tid, n = _QUEUE.get(timeout=0.2)
+                        bars[tid].update(n)
+                except _q.Empty:
+                    pass
+                for p in [p for p in pending if p.ready()]:
+                    pending.remove(p)
+                    handle(*p.get())
+            for b in bars.values():
+                b.close()
+        _QUEUE = None
+
+    # 3. metrics, report, files
+    from swarmnav import metrics
+    from swarmnav.evaluation import link_labels, truth_at_epochs
+    from swarmnav.report import build_report, render_markdown, summary_table, validate_report
+
+    from services.provenance import provenance
+
+    truths = {s: truth_at_epochs(_DATASETS[s]) for s in seeds}
+    windows = meta.gnss_outages
+    blocks = {}
+    ran = [a for a in algos if all((a, s) in results for s in seeds)]
+    for a in ran:
+        rs = [results[(a, s)] for s in seeds]
+        blocks[a] = metrics.algorithm_metrics(
+            truths[seeds[0]].uavs, truths[seeds[0]].t,
+            [r.pos - truths[s].pos for r, s in zip(rs, seeds)], [r.vel - truths[s].vel for r, s in zip(rs, seeds)],
+            [r.pos_cov for r in rs], [r.step_ms for r in rs], windows)
+        blocks[a]["wall_s"] = float(sum(r.wall_s for r in rs))
+        blocks[a]["rounds_mean"] = float(np.mean(np.concatenate([r.rounds.ravel() for r in rs])))
+    det = single = None
+    dl = settings.get("delta_l_m")
+    dh = {"p50": None, "p95": None}
+    if "atvfg" in ran:
+        rs = [results[("atvfg", s)] for s in seeds]
+        links = []
+        labels = []
+        for i, (r, s) in enumerate(zip(rs, seeds)):
+            lk = r.links.copy()
+            lb = link_labels(_DATASETS[s])
+            # make (k) unique across seeds so labels join within their own seed
+            lk["k"] += i * (K + 1)
+            lb["k"] += i * (K + 1)
+            links.append(lk)
+            labels.append(lb)
+        det, single = metrics.detection_report(np.concatenate(links), np.concatenate(labels), meta.fault_threshold_m)
+        dh = metrics.percentiles(np.concatenate([r.delta_h_m.ravel() for r in rs]), (50, 95))
+        if dl is None:
+            v = np.concatenate([r.delta_l_m.ravel() for r in rs])
+            v = v[np.isfinite(v)]
+            dl = float(np.median(v)) if len(v) else None
+    rep = build_report(mode="in-process", scenario=name, seeds=seeds, n_uavs=len(meta.uav_ids()),
+                       duration_s=meta.duration_s, algorithms=blocks, detection=det, detection_single=single,
+                       delta_l_m=dl, delta_h_m=dh, provenance=provenance(cfg_sha), events=[],
+                       extra={"source": "config" if args.config else "dataset", "failed": failures,
+                              "gnss_outages": [w.model_dump() for w in windows],
+                              "fault_threshold_m": meta.fault_threshold_m,
+                              "settings": {k: v for k, v in settings.items() if k != "delta_l_file"}})
+    problems = validate_report(rep)
+    if problems:
+        log.error("report.json does not meet the contract: %s", problems)
+    (out / "report.json").write_text(json.dumps(rep, indent=1, sort_keys=False) + "\n")
+    (out / "report.md").write_text(render_markdown(rep))
+
+    s0 = seeds[0]
+    res0 = {a: results[(a, s0)] for a in ran}
+    _write_figures(out, res0, truths[s0], {a: [results[(a, s)] for s in seeds] for a in ran},
+                   [truths[s] for s in seeds], windows, _DATASETS[s0], meta, dl)
+    _write_tum(out, results, truths, seeds, ran)
+    if not args.no_rrd:
+        _write_rrd(out / "evaluate.rrd", res0, truths[s0])
+    wall = time.perf_counter() - t_wall
+    log.info("done in %.1f s", wall)
+    print(summary_table(rep))
+    print(f"wrote {out}/report.json, report.md, figures/, traj/, {'evaluate.rrd, ' if not args.no_rrd else ''}evaluate.log "
+          f"({wall:.1f} s wall)")
+    logging.getLogger("swarmnav").removeHandler(handler)
+    handler.close()
+    return 1 if failures or problems else 0
+
+
+# -- outputs ------------------------------------------------------------------------------------
+
+
+def _write_figures(out: Path, res0: dict, truth, res_all: dict, truths: list, windows, ds, meta, dl) -> None:
+    import numpy as np
+
+    from swarmnav.evaluation import link_labels
+    from swarmnav.metrics import match_links_to_labels
+
+    from services.figures import detection_figure, error_figure
+    from services.recording import algo_color
+
+    fig = out / "figures"
+    fig.mkdir(exist_ok=True)
+    if not res0:
+        return
+    colors = {a: algo_color(a) for a in res0}
+    t = truth.t
+    uavs = list(truth.uavs)
+    win = [(w.start_s, w.end_s) for w in windows]
+    if 1 in uavs:
+        j = uavs.index(1)
+        error_figure(fig / "pos_error_uav1.png", t, {a: r.pos[:, j] - truth.pos[:, j] for a, r in res0.items()},
+                     f"UAV 1 position error (seed {next(iter(res0.values())).seed})", "m", colors, win)
+        error_figure(fig / "vel_error_uav1.png", t, {a: r.vel[:, j] - truth.vel[:, j] for a, r in res0.items()},
+                     f"UAV 1 velocity error (seed {next(iter(res0.values())).seed})", "m/s", colors, win)
+
+    def rms(arrs):  # list of (K,N,3) -> (K,3), RMS over UAVs and seeds
+        e = np.concatenate(arrs, axis=1)
+        return np.sqrt(np.nanmean(e**2, axis=1))
+
+    error_figure(fig / "pos_error_swarm.png", t,
+                 {a: rms([r.pos - tr.pos for r, tr in zip(rl, truths)]) for a, rl in res_all.items()},
+                 "swarm position error (RMS over UAVs and seeds)", "m", colors, win, rms=True)
+    error_figure(fig / "vel_error_swarm.png", t,
+                 {a: rms([r.vel - tr.vel for r, tr in zip(rl, truths)]) for a, rl in res_all.items()},
+                 "swarm velocity error (RMS over UAVs and seeds)", "m/s", colors, win, rms=True)
+    if "atvfg" in res0 and len(res0["atvfg"].links):
+        r = res0["atvfg"]
+        lk = r.links
+        lab = link_labels(ds)
+        K = len(t)
+        cls, faulty, _ = match_links_to_labels(lk, lab, meta.fault_threshold_m)
+        # per-epoch counts of the labelled decisions
+        labd = {(int(k), int(a), int(b)): float(e) for k, a, b, e in zip(lab["k"], lab["a"], lab["b"], lab["err"])}
+        kk = np.array([k for k, o, x in zip(lk["k"], lk["observer"], lk["other"])
+                       if not np.isnan(labd.get((int(k), min(o, x), max(o, x)), np.nan))], int)
+        cnt = lambda m: np.bincount(kk[m] - 1, minlength=K)[:K] if len(kk) else np.zeros(K)  # noqa: E731
+        flagged = cls <= 1
+        dh = np.nanmedian(np.where(np.isfinite(r.delta_h_m), r.delta_h_m, np.nan), axis=1) \
+            if np.isfinite(r.delta_h_m).any() else np.full(K, np.nan)
+        detection_figure(fig / "detection_atvfg.png", t, cnt(faulty), cnt(flagged & faulty), cnt(flagged & ~faulty),
+                         cnt(cls == 0), cnt(cls == 1), dh, dl)
+
+
+def _tum_lines(t, pos, quat) -> str:
+    import numpy as np
+
+    rows = []
+    for ti, p, q in zip(t, pos, quat):
+        if not np.all(np.isfinite(p)):
+            continue
+        if not np.all(np.isfinite(q)):
+            q = (1.0, 0.0, 0.0, 0.0)
+        rows.append(f"{ti:.6f} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f} {q[0]:.9f}")
+    return "\n".join(rows) + "\n"
+
+
+def _write_tum(out: Path, results: dict, truths: dict, seeds: list[int], algos: list[str]) -> None:
+    """TUM: 'timestamp tx ty tz qx qy qz qw' (ENU m; q body FLU -> ENU; identity when the estimator
+    has no attitude). First seed at traj/<algo>/uav<id>.tum, other seeds under traj/seed<N>/."""
+    for i, s in enumerate(seeds):
+        base = out / "traj" if i == 0 else out / "traj" / f"seed{s}"
+        tr = truths[s]
+        for name, get in [("truth", lambda j: (tr.pos[:, j], tr.quat[:, j]))] + \
+                [(a, (lambda a: lambda j: (results[(a, s)].pos[:, j], results[(a, s)].quat[:, j]))(a)) for a in algos]:
+            d = base / name
+            d.mkdir(parents=True, exist_ok=True)
+            for j, u in enumerate(tr.uavs):
+                p, q = get(j)
+                (d / f"uav{int(u)}.tum").write_text(_tum_lines(tr.t, p, q))
+
+
+def _write_rrd(path: Path, res0: dict, truth) -> None:
+    """Every algorithm side by side (first seed): positions, link classes, error series."""
+    import numpy as np
+
+    from services import recording as R
+
+    algos = list(res0)
+    rec = R.open_recording(path, blueprint=R.default_blueprint([a for a in algos if len(res0[a].links)]))
+    try:
+        t = truth.t
+        k = np.arange(1, len(t) + 1)
+        R.log_styles(algos, rec)
+        for j, u in enumerate(truth.uavs):
+            R.send_positions("truth", int(u), t, k, truth.pos[:, j], rec, radius=1.5)
+        uavs = list(truth.uavs)
+        for a, r in res0.items():
+            for j, u in enumerate(truth.uavs):
+                R.send_positions(a, int(u), t, k, r.pos[:, j], rec)
+            pe = np.linalg.norm(r.pos - truth.pos, axis=2)
+            ve = np.linalg.norm(r.vel - truth.vel, axis=2)
+            if 1 in uavs:
+                R.send_series(R.error_path(a, "pos_3d", "uav1"), t, k, pe[:, uavs.index(1)], rec)
+            R.send_series(R.error_path(a, "pos_3d", "swarm"), t, k, np.sqrt(np.nanmean(pe**2, axis=1)), rec)
+            R.send_series(R.error_path(a, "vel_3d", "swarm"), t, k, np.sqrt(np.nanmean(ve**2, axis=1)), rec)
+            if len(r.links):
+                idx = {int(u): j for j, u in enumerate(truth.uavs)}
+                lk = np.sort(r.links, order=["k", "observer", "other"])
+                bounds = np.searchsorted(lk["k"], np.arange(1, len(t) + 2))
+                per_epoch = []
+                for i in range(len(t)):
+                    seg = lk[bounds[i]:bounds[i + 1]]
+                    worst: dict[tuple[int, int], int] = {}
+                    for o, x, c in zip(seg["observer"].tolist(), seg["other"].tolist(), seg["cls"].tolist()):
+                        key = (min(o, x), max(o, x))
+                        worst[key] = min(c, worst.get(key, 2))
+                    segs, cls = [], []
+                    for (a1, b1), c in sorted(worst.items()):
+                        if a1 in idx and b1 in idx:
+                            p1, p2 = r.pos[i, idx[a1]], r.pos[i, idx[b1]]
+                            if np.all(np.isfinite(p1)) and np.all(np.isfinite(p2)):
+                                segs.append((p1, p2))
+                                cls.append(c)
+                    per_epoch.append((np.array(segs, float).reshape(-1, 2, 3), np.array(cls, int)))
+                R.send_links(a, t, k, per_epoch, rec)
+        R.set_epoch(0, float(truth.t[0]) - (truth.t[1] - truth.t[0] if len(truth.t) > 1 else 1.0), rec)
+        R.log_event("evaluate", 0, 0.0, text=f"in-process evaluation of {', '.join(algos)} (seed "
+                    f"{next(iter(res0.values())).seed if res0 else '-'}); no kills in-process", rec=rec, level="INFO")
+    finally:
+        R.close_recording(rec)
