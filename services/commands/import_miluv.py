@@ -1,11 +1,40 @@
-"""`swarmnav import-miluv` (not implemented yet)."""
+"""`swarmnav import-miluv SRC_DIR --out DATASET_DIR`: convert a MILUV recording (docs/miluv.md)."""
 
-HELP = "import-miluv (not implemented yet)"
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+HELP = "convert a MILUV recording (3 quadrotors, UWB, IMU, mocap) into a swarmnav dataset"
+DESCRIPTION = """Convert one MILUV experiment folder (ifo00N/*.csv + config/) into a swarmnav dataset directory.
+
+UAV N = robot ifo00N; anchor k = static node 100+k at its surveyed position. Local frame = the
+Vicon world frame (x->E, y->N, z->U), no geodetic origin, no GNSS. IMU = imu_px4.csv (body FLU,
+every sample kept). Ranges = uwb_range.csv of all robots, deduplicated; sigma = the row's std;
+fault label NLOS_REAL where |bias| > 3 std. Truth = mocap. See docs/miluv.md.
+"""
 
 
 def add_arguments(p):
-    pass
+    p.add_argument("src", metavar="SRC_DIR", help="MILUV experiment folder, e.g. ../shared/data/miluv/cirObstacles_3_random_0")
+    p.add_argument("--out", required=True, metavar="DATASET_DIR", help="output dataset directory (created)")
+    p.add_argument("--epoch-dt", type=float, default=0.1, metavar="S",
+                   help="epoch length in seconds (default 0.1; ranges keep their own timestamps inside the epoch)")
 
 
 def run(args) -> int:
-    raise SystemExit("swarmnav import-miluv: not implemented yet")
+    from services.importers.miluv import convert
+    from swarmnav.errors import DatasetError
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise DatasetError(f"--out {out}: exists and is not a directory")
+    ds, summary = convert(args.src, epoch_dt=args.epoch_dt)
+    ds.write(out)
+    r = summary["ranges"]
+    print(f"imported {summary['experiment']}: {len(ds.meta.uav_ids())} UAVs, {len(ds.meta.anchors())} anchors, "
+          f"{summary['n_epochs']} epochs of {summary['epoch_dt_s']} s from t={summary['t_start']} s; "
+          f"{r['kept']} ranges ({r['inter_uav']} inter-UAV, {r['to_anchor']} to anchors, "
+          f"{r['duplicates_removed']} duplicate rows removed, {r['nlos_real_rows']} NLOS_REAL) -> {out}")
+    print(json.dumps(summary, indent=1, sort_keys=True, default=str))
+    return 0

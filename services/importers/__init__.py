@@ -1,0 +1,1 @@
+"""Importers: convert recorded datasets from other formats into the swarmnav dataset format."""
