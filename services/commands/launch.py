@@ -1,11 +1,117 @@
-"""`swarmnav launch` (not implemented yet)."""
+"""`swarmnav launch`: the swarm as real processes on Zenoh (router, sensor-sim, N UAV nodes, monitor).
 
-HELP = "launch (not implemented yet)"
+The scenario is simulated once into ``<run>/dataset/`` (or ``--dataset DIR`` is played as is);
+then deploy/launcher.py starts an embedded router on a free loopback port and one OS process per
+service, each logging to ``<run>/logs/<name>.log``. Kills/restarts come from ``--kill/--restart
+ID@T`` (simulation time) and the config's ``faults.process_kill``. Results: ``report.json``
+("mode": "distributed"), ``report.md``, ``swarm.rrd``. Without ``--out`` the run goes to
+``runs/<timestamp>-<scenario>/`` and ``runs/latest`` points at it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+HELP = "run the swarm as a real multi-process Zenoh deployment (router, sensor-sim, UAV nodes, monitor)"
+
+
+def _fault(s: str) -> tuple[int, float]:
+    try:
+        u, t = s.split("@")
+        return int(u), float(t)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected ID@T with T in simulation seconds (e.g. 2@15), got {s!r}") from None
 
 
 def add_arguments(p):
-    pass
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--config", help="scenario TOML (simulated once for the run)")
+    src.add_argument("--dataset", help="dataset directory to replay")
+    p.add_argument("--algo", default="atvfg", help="estimator hosted by every node (default atvfg)")
+    p.add_argument("--seed", type=int, default=None, help="run seed (default: the config's)")
+    p.add_argument("--kill", type=_fault, action="append", default=[], metavar="ID@T", help="SIGKILL UAV ID's process at sim time T")
+    p.add_argument("--restart", type=_fault, action="append", default=[], metavar="ID@T", help="restart UAV ID's process at sim time T")
+    p.add_argument("--rate", type=float, default=None, help="real-time factor instead of lockstep")
+    p.add_argument("--out", default=None, help="run directory (default runs/<timestamp>-<scenario>/ + runs/latest)")
+    p.add_argument("--timeout", type=float, default=7200.0, help="wall-clock limit of the whole run (s)")
+    p.add_argument("--no-progress", action="store_true")
 
 
 def run(args) -> int:
-    raise SystemExit("swarmnav launch: not implemented yet")
+    from deploy.launcher import LaunchSpec, launch
+    from swarmnav.dataset import Dataset
+    from swarmnav.errors import SwarmnavError
+
+    kills, restarts = list(args.kill), list(args.restart)
+    sha = None
+    if args.config:
+        from swarmnav.config import load_config
+        from swarmnav.sim import simulate
+
+        sc = load_config(args.config)
+        seed = sc.scenario.seed if args.seed is None else args.seed
+        name = sc.scenario.name
+        sha = sc.sha256()
+        for pk in sc.faults.process_kill:
+            kills.append((pk.uav, pk.at_s))
+            if pk.restart_s is not None:
+                restarts.append((pk.uav, pk.restart_s))
+    else:
+        ds = Dataset.read(args.dataset)
+        name = ds.meta.name
+        seed = args.seed if args.seed is not None else (ds.meta.seed or 0)
+    if args.out:
+        run_dir = Path(args.out)
+    else:
+        run_dir = Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{name}"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    run_dir = run_dir.resolve()
+    if args.config:
+        t0 = time.perf_counter()
+        ds = simulate(sc, seed)
+        ds.write(run_dir / "dataset")
+        dataset = run_dir / "dataset"
+        print(f"simulated {name} seed {seed} in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    else:
+        dataset = Path(args.dataset).resolve()
+    uavs = ds.meta.uav_ids()
+    for u, _ in kills + restarts:
+        if u not in uavs:
+            raise SwarmnavError(f"--kill/--restart: UAV {u} does not exist (UAVs {uavs})")
+    if not args.out:
+        latest = Path("runs") / "latest"
+        if latest.is_symlink() or latest.exists():
+            latest.unlink()
+        latest.symlink_to(run_dir.name)
+    spec = LaunchSpec(run_dir=run_dir, dataset=dataset, seed=seed, algo=args.algo, uavs=uavs,
+                      n_epochs=ds.meta.n_epochs(), kills=sorted(kills, key=lambda x: x[1]),
+                      restarts=sorted(restarts, key=lambda x: x[1]), config_sha256=sha, rate=args.rate,
+                      progress=not args.no_progress, timeout_s=args.timeout)
+    t0 = time.perf_counter()
+    status, summary = launch(spec)
+    wall = time.perf_counter() - t0
+    print(f"\n{'process':<12} {'exit':>5}  note")
+    for n, s in summary.items():
+        note = "killed by schedule, restarted" if s["killed_by_schedule"] else ""
+        print(f"{n:<12} {str(s['exit']):>5}  {note}")
+    rp = run_dir / "report.json"
+    if rp.is_file():
+        from swarmnav.report import summary_table
+
+        rep = json.loads(rp.read_text())
+        rep.setdefault("distributed", {})["wall_s"] = wall
+        rep["distributed"]["realtime_factor"] = ds.meta.duration_s / wall if wall > 0 else None
+        rep["distributed"]["processes"] = summary
+        rp.write_text(json.dumps(rep, indent=1) + "\n")
+        print(summary_table(rep))
+        print(f"events: {rep.get('events')}")
+    else:
+        print("no report.json was written (see the logs)", file=sys.stderr)
+        status = status or 1
+    print(f"run directory: {run_dir} ({wall:.1f} s wall, {ds.meta.duration_s / wall:.1f}x real time)")
+    return status

@@ -3,6 +3,7 @@
 Grammar (``<run>`` is the run id, ``<id>`` a UAV id as a decimal integer >= 1)::
 
     swarmnav/<run>/meta                      queryable (sensor-sim): DatasetMeta of the run
+    swarmnav/<run>/clock                     sensor-sim -> all: epoch k starts (participants), or done
     swarmnav/<run>/uav/<id>/init             queryable (sensor-sim): initial knowledge of UAV <id>
     swarmnav/<run>/uav/<id>/imu              sensor-sim -> node <id>: IMU batch of epoch k
     swarmnav/<run>/uav/<id>/gnss             sensor-sim -> node <id>: GNSS fix at epoch k (if any)
@@ -53,7 +54,7 @@ def _id(uav: int) -> str:
 
 @dataclass(frozen=True)
 class Key:
-    """A parsed key: kind in {'uav', 'truth', 'alive', 'meta'}."""
+    """A parsed key: kind in {'uav', 'truth', 'alive', 'meta', 'clock'}."""
 
     run: str
     kind: str
@@ -91,6 +92,17 @@ def meta(run: str) -> str:
     return f"{ROOT}/{_run(run)}/meta"
 
 
+def clock(run: str) -> str:
+    return f"{ROOT}/{_run(run)}/clock"
+
+
+def uav_any(run: str, uav_id: int) -> str:
+    """Every topic of one UAV, e.g. ``swarmnav/r/uav/3/*`` (a node's own inbox)."""
+    if uav_id < 1:
+        raise KeyError_(f"UAV ids start at 1, got {uav_id}")
+    return f"{ROOT}/{_run(run)}/uav/{_id(uav_id)}/*"
+
+
 def alive(run: str, service: str, ident: int = 0) -> str:
     if service not in SERVICES:
         raise KeyError_(f"unknown service {service!r}; expected one of {SERVICES}")
@@ -126,6 +138,8 @@ def parse(key: str) -> Key:
 
     if rest == ["meta"]:
         return Key(run, "meta")
+    if rest == ["clock"]:
+        return Key(run, "clock")
     if len(rest) == 3 and rest[0] == "uav" and rest[2] in UAV_TOPICS:
         u = num(rest[1])
         if u < 1:
@@ -142,6 +156,8 @@ def build(k: Key) -> str:
     """Inverse of :func:`parse`."""
     if k.kind == "meta":
         return meta(k.run)
+    if k.kind == "clock":
+        return clock(k.run)
     if k.kind == "uav":
         return uav(k.run, k.uav, k.topic)
     if k.kind == "truth":

@@ -220,6 +220,19 @@ class HistoryMsg(Msg):
     estimates: list[EstimateMsg] = Field(default_factory=list)
 
 
+class ClockMsg(Msg):
+    """Sensor-sim clock: epoch k (time t) starts with these participants; ``done`` ends the run.
+    ``hold`` names a scheduled fault the clock waits for before epoch k (the launcher acts on it)."""
+
+    k: int = Field(ge=0)
+    t: Finite
+    n_epochs: int = Field(ge=0)
+    participants: list[UavId] = Field(default_factory=list)
+    done: bool = False
+    hold: Literal["kill", "restart"] | None = None
+    hold_uav: UavId | None = None
+
+
 # -- decoding --------------------------------------------------------------------------------
 
 

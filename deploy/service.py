@@ -1,0 +1,85 @@
+"""Runtime shared by the Zenoh services (uav_node, sensor_sim, monitor): inbox, signals, logging.
+
+Heavy work never runs in a Zenoh callback (gtsam holds the GIL; starving callbacks lose samples,
+DESIGN.md §6). Every subscriber/queryable gets a ``FifoChannel`` handler; one small pump thread per
+channel blocks in ``recv()`` (which releases the GIL) and moves items into a single
+``queue.Queue`` that the service loop drains. When the loop is busy the Rust channel buffers.
+
+SIGTERM/SIGINT set a stop flag and wake the loop; the service then closes its session
+explicitly (a declared subscriber left open hangs interpreter exit).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import signal
+import sys
+import threading
+import time
+
+CHANNEL_CAPACITY = 100_000
+
+
+class Inbox:
+    """One queue of (tag, item) fed by pump threads, one per Zenoh channel handler."""
+
+    def __init__(self):
+        self.q: queue.Queue = queue.Queue()
+        self._threads: list[threading.Thread] = []
+        self.stop = threading.Event()
+
+    def channel(self):
+        import zenoh
+
+        return zenoh.handlers.FifoChannel(CHANNEL_CAPACITY)
+
+    def attach(self, tag: str, source) -> None:
+        """Pump ``source.recv()`` (Subscriber/Queryable/reply handler) into the queue as (tag, item)."""
+
+        def pump():
+            while not self.stop.is_set():
+                try:
+                    item = source.recv()
+                except Exception:  # channel closed (undeclared / session closed)
+                    return
+                self.q.put((tag, item))
+
+        th = threading.Thread(target=pump, name=f"pump-{tag}", daemon=True)
+        th.start()
+        self._threads.append(th)
+
+    def get(self, timeout: float | None):
+        try:
+            return self.q.get(timeout=timeout)
+        except queue.Empty:
+            return None
+
+    def wake(self) -> None:
+        self.q.put(("_wake", None))
+
+
+def install_signals(inbox: Inbox) -> None:
+    def handler(signum, frame):
+        inbox.stop.set()
+        inbox.wake()
+
+    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGINT, handler)
+
+
+def setup_logging(name: str) -> logging.Logger:
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
+                        format=f"%(asctime)s.%(msecs)03d {name} %(levelname)s %(message)s", datefmt="%H:%M:%S")
+    return logging.getLogger(name)
+
+
+class Deadline:
+    def __init__(self, seconds: float):
+        self.end = time.monotonic() + seconds
+
+    def left(self) -> float:
+        return max(0.0, self.end - time.monotonic())
+
+    def passed(self) -> bool:
+        return time.monotonic() >= self.end

@@ -1,0 +1,49 @@
+"""The one Zenoh config builder of every swarmnav program (router, services, tests).
+
+DESIGN.md §6: listen endpoints explicit (loopback by default), multicast scouting off, a short
+link lease so a hung process loses its liveliness token quickly. Services run in ``client`` mode
+and connect to the run's router; for several hosts point ``--router`` at the router host (see
+deploy/zenoh-router.json5 / deploy/zenoh-client.json5 and the README).
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+
+LEASE_MS = 3000
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A currently free TCP port on ``host`` (the OS picks it; used once per run)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def _base(conf) -> None:
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "true")
+    conf.insert_json5("transport/link/tx/lease", str(LEASE_MS))
+
+
+def router_config(listen: list[str], config_file: str | None = None):
+    import zenoh
+
+    conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+    conf.insert_json5("mode", '"router"')
+    conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    conf.insert_json5("connect/endpoints", "[]")
+    _base(conf)
+    return conf
+
+
+def client_config(connect: list[str] | str, config_file: str | None = None):
+    import zenoh
+
+    conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([connect] if isinstance(connect, str) else list(connect)))
+    conf.insert_json5("listen/endpoints", "[]")
+    _base(conf)
+    return conf

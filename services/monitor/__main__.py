@@ -1,0 +1,3 @@
+from .monitor import main
+
+raise SystemExit(main())

@@ -1,0 +1,3 @@
+from .sim import main
+
+raise SystemExit(main())

@@ -1,0 +1,245 @@
+"""sensor_sim: plays a dataset onto Zenoh, epoch by epoch, and keeps the swarm clock.
+
+For every epoch k and every participating UAV it publishes the EpochInput the in-process run
+would build (``EpochSlicer.epoch(k, uav)``), split over ``uav/<id>/{imu,gnss,uwb,rel}`` and closed
+by ``uav/<id>/epoch`` (which lists the parts and the epoch's participants = the UAV nodes live
+when the epoch opens). Truth goes to ``truth/<id>``, which nodes never subscribe to. It also
+answers ``meta`` (the dataset meta + seed) and ``uav/<id>/init`` (initial knowledge from
+``initial_states(ds, seed)``; with ``?restart=1`` a fresh coarse alignment at the current epoch).
+
+Clocks: ``lockstep`` (default) opens epoch k+1 once every participant of epoch k has published
+its estimate or lost its liveliness (or ``--epoch-timeout`` passed); ``--rate R`` plays at R× real
+time instead (an epoch every epoch_dt/R seconds, whatever the nodes do). Scheduled faults
+(``--kill ID@T``/``--restart ID@T``) hold the clock at the first epoch with t >= T until the launcher
+has acted (the UAV's token gone / back), so a fault always lands between the same two epochs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from deploy.service import Deadline, Inbox, install_signals, setup_logging
+from deploy.zconf import client_config
+from swarmnav.dataset import Dataset, EpochSlicer
+from swarmnav.evaluation import truth_at_epochs
+from swarmnav.geometry import quat_from_rotvec, quat_mul
+from swarmnav.initial import initial_states
+from swarmnav.wire import keys
+from swarmnav.wire import messages as M
+
+
+def parse_fault(s: str) -> tuple[int, float]:
+    try:
+        u, t = s.split("@")
+        return int(u), float(t)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected ID@T (e.g. 2@15), got {s!r}") from None
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(prog="sensor_sim")
+    p.add_argument("--router", required=True)
+    p.add_argument("--run", required=True)
+    p.add_argument("--dataset", required=True)
+    p.add_argument("--seed", type=int, required=True)
+    p.add_argument("--rate", type=float, default=None, help="real-time factor (default: lockstep)")
+    p.add_argument("--kill", type=parse_fault, action="append", default=[])
+    p.add_argument("--restart", type=parse_fault, action="append", default=[])
+    p.add_argument("--epoch-timeout", type=float, default=60.0)
+    p.add_argument("--startup-timeout", type=float, default=180.0)
+    p.add_argument("--fault-timeout", type=float, default=60.0)
+    p.add_argument("--no-monitor", action="store_true", help="do not wait for a monitor at start")
+    p.add_argument("--zenoh-config", default=None)
+    return p.parse_args(argv)
+
+
+class SensorSim:
+    def __init__(self, args, session, log):
+        self.a, self.s, self.log = args, session, log
+        self.run = args.run
+        self.ds = Dataset.read(args.dataset)
+        self.meta = self.ds.meta
+        self.uavs = self.meta.uav_ids()
+        self.slicer = EpochSlicer(self.ds)
+        self.inits = initial_states(self.ds, args.seed)
+        self.truth = truth_at_epochs(self.ds)
+        self.K = self.meta.n_epochs()
+        self.inbox = Inbox()
+        self.rejects = M.Rejects(log)
+        self.alive_uav: set[int] = set()
+        self.monitor_alive = False
+        self.estimates: dict[int, set[int]] = {}
+        self.k = 0
+        self.bytes_per_uav = 0
+        self.meta_msg = M.MetaMsg(run=self.run, seed=args.seed, meta=self.meta.model_dump(mode="json", by_alias=True)).encode()
+
+    def setup(self):
+        ib = self.inbox
+        self.subs = [
+            self.s.declare_queryable(keys.meta(self.run), ib.channel()),
+            self.s.declare_queryable(keys.uav_all(self.run, "init"), ib.channel()),
+            self.s.declare_subscriber(keys.uav_all(self.run, "estimate"), ib.channel()),
+            self.s.liveliness().declare_subscriber(keys.alive_all(self.run), ib.channel(), history=True),
+        ]
+        for tag, sub in zip(("q", "q", "est", "alive"), self.subs):
+            ib.attach(tag, sub)
+        import zenoh
+
+        bl = zenoh.CongestionControl.BLOCK
+        self.pubs = {(u, t): self.s.declare_publisher(keys.uav(self.run, u, t), congestion_control=bl)
+                     for u in self.uavs for t in M.SENSOR_MSG}
+        self.pub_truth = {u: self.s.declare_publisher(keys.truth(self.run, u), congestion_control=bl) for u in self.uavs}
+        self.pub_clock = self.s.declare_publisher(keys.clock(self.run), congestion_control=bl)
+        self.token = self.s.liveliness().declare_token(keys.alive(self.run, "sensor_sim", 0))
+
+    def restart_init(self, u: int) -> M.InitMsg:
+        """Coarse alignment at the current epoch for a restarted node (same sigmas as at t=0)."""
+        k = max(self.k, 1)
+        j = self.uavs.index(u)
+        i0 = self.inits[u]
+        rng = np.random.default_rng([self.a.seed, u, k, 0x5EED])
+        tr = self.truth
+        pos = tr.pos[k - 1, j] + rng.normal(0, 1, 3) * i0.pos_sigma
+        vel = tr.vel[k - 1, j] + rng.normal(0, i0.vel_sigma, 3)
+        q = quat_mul(quat_from_rotvec(rng.normal(0, 1, 3) * i0.att_sigma), tr.quat[k - 1, j])
+        return M.InitMsg(uav=u, t=float(tr.t[k - 1]), pos=list(map(float, pos)), vel=list(map(float, vel)),
+                         quat=list(map(float, q)), pos_sigma=list(map(float, i0.pos_sigma)),
+                         vel_sigma=float(i0.vel_sigma), att_sigma=list(map(float, i0.att_sigma)))
+
+    def handle(self, tag, item):
+        if tag == "_wake":
+            return
+        if tag == "q":
+            try:
+                kk = keys.parse(str(item.key_expr))
+                if kk.kind == "meta":
+                    item.reply(keys.meta(self.run), self.meta_msg)
+                elif kk.kind == "uav" and kk.topic == "init" and kk.uav in self.inits:
+                    restart = "restart=1" in str(item.parameters)
+                    m = self.restart_init(kk.uav) if restart else M.init_to_msg(kk.uav, self.inits[kk.uav])
+                    item.reply(keys.uav(self.run, kk.uav, "init"), m.encode())
+            except Exception as e:
+                self.rejects.add("query", M.WireError("bad_query", str(e)))
+            finally:
+                item.drop()
+            return
+        try:
+            kk = keys.parse(str(item.key_expr))
+        except ValueError as e:
+            self.rejects.add(str(item.key_expr), M.WireError("bad_key", str(e)))
+            return
+        if tag == "alive":
+            import zenoh
+
+            put = item.kind == zenoh.SampleKind.PUT
+            if kk.topic == "uav":
+                (self.alive_uav.add if put else self.alive_uav.discard)(kk.uav)
+            elif kk.topic == "monitor":
+                self.monitor_alive = put
+            return
+        if tag == "est":
+            try:
+                m = M.decode(M.EstimateMsg, item.payload.to_bytes(), uav=kk.uav)
+            except M.WireError as e:
+                self.rejects.add("estimate", e)
+                return
+            self.estimates.setdefault(m.k, set()).add(m.uav)
+
+    def pump(self, timeout: float) -> None:
+        it = self.inbox.get(timeout)
+        while it is not None:
+            self.handle(*it)
+            it = self.inbox.get(0)
+        if self.inbox.stop.is_set():
+            raise KeyboardInterrupt
+
+    def wait_until(self, cond, timeout: float, what: str) -> bool:
+        dl = Deadline(timeout)
+        while not cond():
+            if dl.passed():
+                self.log.warning("timeout (%.0f s) waiting for %s", timeout, what)
+                return False
+            self.pump(min(0.2, dl.left() + 1e-3))
+        return True
+
+    def clock(self, k: int, **kw) -> None:
+        t = self.meta.epoch_time(k)
+        self.pub_clock.put(M.ClockMsg(k=k, t=t, n_epochs=self.K, **kw).encode())
+
+    def play(self) -> int:
+        a = self.a
+        need_mon = not a.no_monitor
+        self.wait_until(lambda: self.alive_uav >= set(self.uavs) and (self.monitor_alive or not need_mon),
+                        a.startup_timeout, f"all {len(self.uavs)} UAV nodes and the monitor to come up")
+        self.log.info("start: %d epochs, live UAVs %s", self.K, sorted(self.alive_uav))
+        kills = sorted((t, u) for u, t in a.kill)
+        restarts = sorted((t, u) for u, t in a.restart)
+        t_wall0 = time.monotonic()
+        for k in range(1, self.K + 1):
+            self.k = k
+            t = self.meta.epoch_time(k)
+            while kills and kills[0][0] <= t + 1e-9:
+                _, u = kills.pop(0)
+                self.clock(k, hold="kill", hold_uav=u, participants=sorted(self.alive_uav))
+                self.wait_until(lambda: u not in self.alive_uav, a.fault_timeout, f"UAV {u} to be killed")
+            while restarts and restarts[0][0] <= t + 1e-9:
+                _, u = restarts.pop(0)
+                self.clock(k, hold="restart", hold_uav=u, participants=sorted(self.alive_uav))
+                self.wait_until(lambda: u in self.alive_uav, a.fault_timeout, f"UAV {u} to restart")
+            if a.rate:
+                due = t_wall0 + (t - self.meta.t_start) / a.rate
+                while time.monotonic() < due:
+                    self.pump(max(0.0, min(0.05, due - time.monotonic())))
+            else:
+                self.pump(0)
+            part = sorted(self.alive_uav)
+            self.clock(k, participants=part)
+            for u in part:
+                j = self.uavs.index(u)
+                tm = M.TruthMsg(uav=u, k=k, t=t, pos=list(map(float, self.truth.pos[k - 1, j])),
+                                vel=list(map(float, self.truth.vel[k - 1, j])), quat=list(map(float, self.truth.quat[k - 1, j])))
+                self.pub_truth[u].put(tm.encode())
+                for topic, m in M.epoch_input_to_msgs(self.slicer.epoch(k, u), part).items():
+                    b = m.encode()
+                    self.bytes_per_uav += len(b)
+                    self.pubs[(u, topic)].put(b)
+            if not a.rate:
+                self.wait_until(lambda: all(u in self.estimates.get(k, ()) or u not in self.alive_uav for u in part),
+                                a.epoch_timeout, f"estimates of epoch {k}")
+            self.estimates.pop(k - 2, None)
+        if a.rate:
+            self.wait_until(lambda: all(u in self.estimates.get(self.K, ()) or u not in self.alive_uav for u in self.uavs),
+                            a.epoch_timeout, "the last estimates")
+        self.clock(self.K, done=True, participants=sorted(self.alive_uav))
+        self.log.info("done: %d epochs in %.1f s wall; sensor bytes per UAV-epoch %.0f; rejected %d %s", self.K,
+                      time.monotonic() - t_wall0, self.bytes_per_uav / max(1, self.K * len(self.uavs)),
+                      self.rejects.total, self.rejects.as_dict())
+        time.sleep(0.5)  # let the clock message reach everyone before the session closes
+        return 0
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    log = setup_logging("sensor_sim")
+    import zenoh
+
+    with zenoh.open(client_config(args.router, args.zenoh_config)) as session:
+        sim = SensorSim(args, session, log)
+        install_signals(sim.inbox)
+        try:
+            sim.setup()
+            rc = sim.play()
+        except KeyboardInterrupt:
+            log.info("stopped by signal at epoch %d", sim.k)
+            rc = 0
+        finally:
+            sim.inbox.stop.set()
+            for s in getattr(sim, "subs", []):
+                try:
+                    s.undeclare()
+                except Exception:
+                    pass
+    return rc

@@ -1,0 +1,338 @@
+"""uav_node: one UAV's estimator as its own process on Zenoh (DESIGN.md §2, issue 4).
+
+Start-up: query the run's dataset meta and this UAV's initial knowledge from the sensor-sim
+(``meta``, ``uav/<id>/init``), build the estimator with ``registry.make_node`` and the same
+settings as the in-process run; declare subscribers (own sensor keys, every peer's ``state``,
+liveliness, clock) and the ``state`` queryable; then declare the liveliness token.
+
+Epoch k: collect the imu/gnss/uwb/rel parts and the ``epoch`` tick (which lists the parts and the
+epoch's participants) into an EpochInput, then drive :func:`swarmnav.protocol.node_epoch`: publish
+each round's state, wait for the same round's state of every participant that is still live
+(liveliness), hand them to the generator sorted by id; publish the final estimate and links.
+A peer that is live is waited for; after ``peer_timeout_s`` its state is re-queried; a peer whose
+liveliness token disappears is dropped at once. A restarted node (``--rejoin``) bootstraps
+from its peers' latest states (queried) and its first epoch's input (``estimator.bootstrap``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from collections import deque
+
+from deploy.service import Deadline, Inbox, install_signals, setup_logging
+from deploy.zconf import client_config
+from swarmnav.dataset import DatasetMeta
+from swarmnav.estimators import registry
+from swarmnav.protocol import node_epoch
+from swarmnav.wire import keys
+from swarmnav.wire import messages as M
+
+HISTORY = 20
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(prog="uav_node")
+    p.add_argument("--router", required=True, help="zenoh endpoint of the router, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--run", required=True)
+    p.add_argument("--uav", type=int, required=True)
+    p.add_argument("--algo", default="atvfg")
+    p.add_argument("--rejoin", action="store_true", help="restarted node: bootstrap from peers")
+    p.add_argument("--zenoh-config", default=None)
+    p.add_argument("--startup-timeout", type=float, default=120.0)
+    return p.parse_args(argv)
+
+
+class Node:
+    def __init__(self, args, session, log):
+        self.a, self.s, self.log = args, session, log
+        self.run, self.uav = args.run, args.uav
+        self.inbox = Inbox()
+        self.rejects = M.Rejects(log)
+        self.dead: set[int] = set()  # peers whose liveliness token went away (and did not come back)
+        self.parts: dict[int, dict[str, M.UavMsg]] = {}  # k -> topic -> msg
+        self.states: dict[tuple[int, int], dict[int, M.StateMsg]] = {}  # (k, r) -> uav -> state
+        self.history: deque[M.StateMsg] = deque(maxlen=HISTORY)
+        self.est_history: deque[M.EstimateMsg] = deque(maxlen=5)
+        self.k_done = 0  # last completed epoch
+        self.done = False
+        self.bytes_out = 0
+
+    # -- setup ---------------------------------------------------------------------------
+    def query_one(self, key: str, cls, timeout: float, params: str = ""):
+        sel = key + (f"?{params}" if params else "")
+        dl = Deadline(timeout)
+        while not dl.passed() and not self.inbox.stop.is_set():
+            for rep in self.s.get(sel, timeout=min(2.0, max(0.1, dl.left()))):
+                if rep.ok is not None:
+                    try:
+                        return M.decode(cls, rep.ok.payload.to_bytes())
+                    except M.WireError as e:
+                        self.rejects.add(key, e)
+            time.sleep(0.2)
+        raise TimeoutError(f"no answer on {key}")
+
+    def setup(self):
+        a = self.a
+        mm = self.query_one(keys.meta(self.run), M.MetaMsg, a.startup_timeout)
+        self.meta = DatasetMeta.model_validate(mm.meta)
+        self.seed = mm.seed
+        self.settings = registry.settings_for_dataset(self.meta)
+        self.rounds = int(self.settings.get("rounds", 3))
+        self.tol = float(self.settings.get("convergence_m", 0.0))
+        self.peer_timeout = float(self.settings.get("peer_timeout_s", 2.0))
+        init = self.query_one(keys.uav(self.run, self.uav, "init"), M.InitMsg, a.startup_timeout,
+                              "restart=1" if a.rejoin else "")
+        self.est = registry.make_node(a.algo, self.uav, self.meta, self.settings, M.msg_to_init(init))
+        ib = self.inbox
+        self.subs = [
+            self.s.declare_subscriber(keys.uav_any(self.run, self.uav), ib.channel()),
+            self.s.declare_subscriber(keys.uav_all(self.run, "state"), ib.channel()),
+            self.s.declare_subscriber(keys.clock(self.run), ib.channel()),
+            self.s.liveliness().declare_subscriber(keys.alive_all(self.run, "uav"), ib.channel(), history=True),
+            self.s.declare_queryable(keys.uav(self.run, self.uav, "state"), ib.channel()),
+        ]
+        for tag, sub in zip(("own", "state", "clock", "alive", "query"), self.subs):
+            ib.attach(tag, sub)
+        self.pub_state = self.s.declare_publisher(keys.uav(self.run, self.uav, "state"))
+        self.pub_est = self.s.declare_publisher(keys.uav(self.run, self.uav, "estimate"))
+        self.pub_links = self.s.declare_publisher(keys.uav(self.run, self.uav, "links"))
+        self.token = self.s.liveliness().declare_token(keys.alive(self.run, "uav", self.uav))
+        self.log.info("UAV %d up: algo %s, rounds %d, rejoin %s", self.uav, a.algo, self.rounds, a.rejoin)
+
+    # -- inbox handling (light: decode + buffer) -------------------------------------------
+    def handle(self, tag, item):
+        if tag == "_wake":
+            return
+        if tag == "alive":
+            try:
+                kk = keys.parse(str(item.key_expr))
+            except ValueError:
+                return
+            if kk.uav == self.uav:
+                return
+            import zenoh
+
+            if item.kind == zenoh.SampleKind.PUT:
+                self.dead.discard(kk.uav)
+            else:
+                self.dead.add(kk.uav)
+                self.log.info("peer %d lost (liveliness)", kk.uav)
+            return
+        if tag == "query":
+            self.answer(item)
+            return
+        key = str(item.key_expr)
+        payload = item.payload.to_bytes()
+        try:
+            kk = keys.parse(key)
+        except ValueError as e:
+            self.rejects.add(key, M.WireError("bad_key", str(e)))
+            return
+        if tag == "clock":
+            try:
+                c = M.decode(M.ClockMsg, payload)
+            except M.WireError as e:
+                self.rejects.add("clock", e)
+                return
+            if c.done:
+                self.done = True
+            return
+        if tag == "state":
+            if kk.uav == self.uav:
+                return  # our own publication
+            try:
+                m = M.decode(M.StateMsg, payload, uav=kk.uav, min_k=self.k_done + 1)
+            except M.WireError as e:
+                self.rejects.add("state", e)
+                return
+            self.states.setdefault((m.k, m.r), {})[m.uav] = m
+            return
+        # own inbox
+        if kk.topic not in M.SENSOR_MSG:
+            return  # our own state/estimate/links publications, or init
+        try:
+            m = M.decode(M.SENSOR_MSG[kk.topic], payload, uav=self.uav, min_k=self.k_done + 1)
+        except M.WireError as e:
+            self.rejects.add(kk.topic, e)
+            return
+        self.parts.setdefault(m.k, {})[kk.topic] = m
+
+    def answer(self, q):
+        """State queryable: ``?k=K;r=R`` -> that state if held, else the latest states + estimates."""
+        try:
+            params = {p.split("=")[0]: p.split("=")[1] for p in str(q.parameters).split(";") if "=" in p}
+            hist = list(self.history)
+            if "k" in params and "r" in params:
+                k, r = int(params["k"]), int(params["r"])
+                hist = [s for s in hist if s.k == k and s.r == r]
+            msg = M.HistoryMsg(uav=self.uav, states=hist, estimates=list(self.est_history))
+            q.reply(keys.uav(self.run, self.uav, "state"), msg.encode())
+        except Exception as e:  # a bad query must not kill the node
+            self.rejects.add("query", M.WireError("bad_query", str(e)))
+        finally:
+            q.drop()
+
+    def pump(self, timeout: float) -> bool:
+        """Handle one inbox item (waiting up to timeout). False when stopping."""
+        it = self.inbox.get(timeout)
+        if it is not None:
+            self.handle(*it)
+            # drain whatever else is queued without blocking
+            while True:
+                it = self.inbox.get(0)
+                if it is None:
+                    break
+                self.handle(*it)
+        return not self.inbox.stop.is_set()
+
+    # -- epoch ---------------------------------------------------------------------------
+    def ready_epoch(self):
+        for k in sorted(self.parts):
+            p = self.parts[k]
+            ep = p.get("epoch")
+            if ep is not None and all(t in p for t in ep.parts):
+                return k
+        return None
+
+    def publish(self, pub, msg) -> None:
+        b = msg.encode()
+        self.bytes_out += len(b)
+        pub.put(b)
+
+    def requery(self, k: int, r: int, missing: list[int]) -> None:
+        for u in missing:
+            try:
+                for rep in self.s.get(keys.uav(self.run, u, "state") + f"?k={k};r={r}", timeout=0.5):
+                    if rep.ok is None:
+                        continue
+                    h = M.decode(M.HistoryMsg, rep.ok.payload.to_bytes(), uav=u)
+                    for s in h.states:
+                        if s.k == k and s.r == r:
+                            self.states.setdefault((k, r), {})[u] = s
+            except M.WireError as e:
+                self.rejects.add("state-query", e)
+
+    def gather(self, k: int, r: int, participants: set[int]) -> dict[int, M.StateMsg]:
+        """Wait for state (k, r) of every participant still live; re-query after peer_timeout."""
+        t0 = time.monotonic()
+        requeried = 0.0
+        while True:
+            have = self.states.get((k, r), {})
+            # a participant is waited for until its liveliness token goes away (the sensor-sim saw
+            # it live when it opened the epoch, so a token we have not seen yet is not a death)
+            expect = participants - self.dead - {self.uav}
+            missing = sorted(expect - set(have))
+            if not missing:
+                break
+            waited = time.monotonic() - t0
+            if waited > self.peer_timeout * 10:
+                self.log.warning("epoch %d round %d: giving up on live peers %s after %.1f s", k, r, missing, waited)
+                break
+            if waited > self.peer_timeout and waited - requeried > self.peer_timeout:
+                self.log.warning("epoch %d round %d: re-querying states of %s", k, r, missing)
+                self.requery(k, r, missing)
+                requeried = waited
+                continue
+            if not self.pump(0.2):
+                raise KeyboardInterrupt
+        have = self.states.get((k, r), {})
+        return {u: have[u] for u in sorted(have) if u in participants and u != self.uav}
+
+    def run_epoch(self, k: int, first: bool) -> None:
+        parts = self.parts.pop(k)
+        ep: M.EpochMsg = parts["epoch"]
+        participants = set(ep.participants)
+        inp = M.msgs_to_epoch_input(parts)
+        if first and self.a.rejoin:
+            peers = self.bootstrap_peers()
+            self.log.info("bootstrapping at epoch %d from peers %s", k, sorted(peers))
+            self.est.bootstrap(inp.t_prev, peers, inp)
+        bytes0 = self.bytes_out
+        wait = 0.0
+        gen = node_epoch(self.est, inp, self.rounds, self.tol)
+        state = next(gen)
+        used: set[int] = set()
+        try:
+            while True:
+                sm = M.state_to_msg(state)
+                self.history.append(sm)
+                self.publish(self.pub_state, sm)
+                t0 = time.monotonic()
+                got = self.gather(k, state.r, participants)
+                wait += time.monotonic() - t0
+                used |= set(got)
+                state = gen.send({u: M.msg_to_state(m) for u, m in got.items()})
+        except StopIteration as stop:
+            est = stop.value
+        em = M.estimate_to_msg(est, wait_ms=wait * 1e3, peers=sorted(used), bytes_out=0)
+        size = len(em.encode())
+        em.bytes_out = self.bytes_out - bytes0 + size + len(M.LinksMsg(uav=self.uav, k=k, links=em.links).encode())
+        self.est_history.append(em)
+        self.publish(self.pub_links, M.LinksMsg(uav=self.uav, k=k, links=em.links))
+        self.publish(self.pub_est, em)
+        self.k_done = k
+        for key in [kr for kr in self.states if kr[0] <= k]:
+            del self.states[key]
+        for kk in [x for x in self.parts if x <= k]:
+            del self.parts[kk]
+
+    def bootstrap_peers(self):
+        peers = {}
+        for rep in self.s.get(keys.uav_all(self.run, "state"), timeout=2.0):
+            if rep.ok is None:
+                continue
+            try:
+                kk = keys.parse(str(rep.ok.key_expr))
+                h = M.decode(M.HistoryMsg, rep.ok.payload.to_bytes(), uav=kk.uav)
+            except (ValueError, M.WireError) as e:
+                self.rejects.add("bootstrap", e if isinstance(e, M.WireError) else M.WireError("bad_key", str(e)))
+                continue
+            if h.uav != self.uav and h.states:
+                peers[h.uav] = M.msg_to_state(h.states[-1])
+        return dict(sorted(peers.items()))
+
+    def loop(self) -> int:
+        first = True
+        while not self.inbox.stop.is_set():
+            k = self.ready_epoch()
+            if k is not None:
+                ep = self.parts[k]["epoch"]
+                if self.uav not in ep.participants:
+                    self.parts.pop(k)
+                    continue
+                self.run_epoch(k, first)
+                first = False
+                continue
+            if self.done:
+                break
+            self.pump(0.5)
+        return 0
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    log = setup_logging(f"uav{args.uav}")
+    import zenoh
+
+    node = None
+    with zenoh.open(client_config(args.router, args.zenoh_config)) as session:
+        node = Node(args, session, log)
+        install_signals(node.inbox)
+        try:
+            node.setup()
+            rc = node.loop()
+        except (KeyboardInterrupt, TimeoutError) as e:
+            log.info("stopping: %s", type(e).__name__)
+            rc = 0 if isinstance(e, KeyboardInterrupt) else 3
+        finally:
+            node.inbox.stop.set()
+            log.info("UAV %d exiting after epoch %d; rejected messages: %d %s", args.uav, node.k_done,
+                     node.rejects.total, node.rejects.as_dict())
+            for s in getattr(node, "subs", []):
+                try:
+                    s.undeclare()
+                except Exception:
+                    pass
+    return rc
