@@ -224,6 +224,8 @@ class Monitor:
         if probs:
             self.log.error("report.json does not meet the contract: %s", probs)
         (self.out / "report.json").write_text(json.dumps(rep, indent=1) + "\n")
+        np.savez_compressed(self.out / "estimates.npz", t=r.t, uavs=r.uavs, pos=r.pos, vel=r.vel, pos_cov=r.pos_cov,
+                            rounds=r.rounds, step_ms=r.step_ms, wait_ms=w, bytes_out=b)
         (self.out / "report.md").write_text(render_markdown(rep))
         return rep
 
