@@ -174,6 +174,10 @@ def run(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     handler = _setup_log(out)
     algos = parse_algos(args.algos)
+    from swarmnav.estimators import registry
+
+    for a in algos:  # fail fast (and import once here, so forked workers inherit the modules)
+        registry.estimator_class(a)
     name, seeds, settings, cfg_sha, ds_given, cfg_path = _load_inputs(args)
     _SETTINGS = settings
     log.info("evaluate %s: algos=%s seeds=%s settings=%s", name, algos, seeds, settings)
@@ -217,7 +221,7 @@ def run(args) -> int:
         if err:
             failures[f"{a}/seed{s}"] = err.strip().splitlines()[-1]
             log.error("%s seed %d failed:\n%s", a, s, err)
-            print(f"swarmnav evaluate: {a} seed {s} FAILED: {failures[f'{a}/seed{s}']}", file=sys.stderr)
+            tqdm.write(f"swarmnav evaluate: {a} seed {s} FAILED: {failures[f'{a}/seed{s}']}", file=sys.stderr)
         else:
             results[(a, s)] = res
             log.info("%s seed %d: %.1f s wall", a, s, res.wall_s)
@@ -368,11 +372,8 @@ def _write_figures(out: Path, res0: dict, truth, res_all: dict, truths: list, wi
         lk = r.links
         lab = link_labels(ds)
         K = len(t)
-        cls, faulty, _ = match_links_to_labels(lk, lab, meta.fault_threshold_m)
-        # per-epoch counts of the labelled decisions
-        labd = {(int(k), int(a), int(b)): float(e) for k, a, b, e in zip(lab["k"], lab["a"], lab["b"], lab["err"])}
-        kk = np.array([k for k, o, x in zip(lk["k"], lk["observer"], lk["other"])
-                       if not np.isnan(labd.get((int(k), min(o, x), max(o, x)), np.nan))], int)
+        cls, faulty, _, valid = match_links_to_labels(lk, lab, meta.fault_threshold_m, return_mask=True)
+        kk = lk["k"][valid].astype(int)
         cnt = lambda m: np.bincount(kk[m] - 1, minlength=K)[:K] if len(kk) else np.zeros(K)  # noqa: E731
         flagged = cls <= 1
         dh = np.nanmedian(np.where(np.isfinite(r.delta_h_m), r.delta_h_m, np.nan), axis=1) \

@@ -118,26 +118,31 @@ def detection_scores(flagged: np.ndarray, faulty: np.ndarray) -> dict:
             "false_alarm_rate": div(c["fp"], c["fp"] + c["tn"]), **c}
 
 
-def match_links_to_labels(links: np.ndarray, labels: np.ndarray, threshold_m: float):
+def match_links_to_labels(links: np.ndarray, labels: np.ndarray, threshold_m: float, return_mask: bool = False):
     """Join classification decisions with link-epoch labels.
 
     links: records with fields k, observer, other, cls (LINK_DTYPE); labels: records k, a, b, err
-    (see :func:`swarmnav.evaluation.link_labels`). Returns (cls, faulty) arrays of the decisions
-    that have a known label, and the number of decisions without one.
+    with a < b and one row per (k, a, b) (see :func:`swarmnav.evaluation.link_labels`). Returns
+    (cls, faulty) arrays of the decisions that have a known label, the number of decisions without
+    one, and with ``return_mask`` the boolean mask of those decisions within ``links``.
     """
-    if len(links) == 0:
-        return np.zeros(0, int), np.zeros(0, bool), 0
-    lab = {(int(k), int(a), int(b)): float(e) for k, a, b, e in zip(labels["k"], labels["a"], labels["b"], labels["err"])}
-    cls, faulty = [], []
-    unlabelled = 0
-    for k, o, x, c in zip(links["k"].tolist(), links["observer"].tolist(), links["other"].tolist(), links["cls"].tolist()):
-        e = lab.get((k, min(o, x), max(o, x)))
-        if e is None or np.isnan(e):
-            unlabelled += 1
-            continue
-        cls.append(c)
-        faulty.append(e > threshold_m)
-    return np.array(cls, int), np.array(faulty, bool), unlabelled
+    n = len(links)
+    if n == 0 or len(labels) == 0:
+        r = (np.zeros(0, int), np.zeros(0, bool), n)
+        return (*r, np.zeros(n, bool)) if return_mask else r
+    o = links["observer"].astype(np.int64)
+    x = links["other"].astype(np.int64)
+    M = int(max(o.max(), x.max(), labels["a"].max(), labels["b"].max())) + 1
+    key_l = (links["k"].astype(np.int64) * M + np.minimum(o, x)) * M + np.maximum(o, x)
+    key_b = (labels["k"].astype(np.int64) * M + labels["a"].astype(np.int64)) * M + labels["b"].astype(np.int64)
+    order = np.argsort(key_b, kind="stable")
+    sk = key_b[order]
+    pos = np.minimum(np.searchsorted(sk, key_l), len(sk) - 1)
+    found = sk[pos] == key_l
+    err = np.where(found, np.asarray(labels["err"], float)[order][pos], np.nan)
+    valid = found & ~np.isnan(err)
+    r = (np.asarray(links["cls"])[valid].astype(int), err[valid] > threshold_m, int((~valid).sum()))
+    return (*r, valid) if return_mask else r
 
 
 def detection_report(links: np.ndarray, labels: np.ndarray, threshold_m: float) -> tuple[dict | None, dict | None]:
