@@ -60,6 +60,7 @@ class LaunchSpec:
     rate: float | None = None
     progress: bool = True
     timeout_s: float = 3600.0
+    sim_extra: list[str] = field(default_factory=list)  # extra sensor_sim arguments (test hooks)
 
 
 def _env() -> dict:
@@ -113,6 +114,7 @@ def launch(spec: LaunchSpec) -> tuple[int, dict]:
         sim_argv += ["--kill", f"{u}@{t}"]
     for u, t in spec.restarts:
         sim_argv += ["--restart", f"{u}@{t}"]
+    sim_argv += spec.sim_extra
     if spec.rate:
         sim_argv += ["--rate", str(spec.rate)]
     sim = Proc("sensor_sim", sim_argv, logs / "sensor_sim.log")

@@ -40,6 +40,7 @@ def add_arguments(p):
     p.add_argument("--out", default=None, help="run directory (default runs/<timestamp>-<scenario>/ + runs/latest)")
     p.add_argument("--timeout", type=float, default=7200.0, help="wall-clock limit of the whole run (s)")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--garbage-at", type=int, default=None, help=argparse.SUPPRESS)  # test hook
 
 
 def run(args) -> int:
@@ -91,7 +92,8 @@ def run(args) -> int:
     spec = LaunchSpec(run_dir=run_dir, dataset=dataset, seed=seed, algo=args.algo, uavs=uavs,
                       n_epochs=ds.meta.n_epochs(), kills=sorted(kills, key=lambda x: x[1]),
                       restarts=sorted(restarts, key=lambda x: x[1]), config_sha256=sha, rate=args.rate,
-                      progress=not args.no_progress, timeout_s=args.timeout)
+                      progress=not args.no_progress, timeout_s=args.timeout,
+                      sim_extra=["--garbage-at", str(args.garbage_at)] if args.garbage_at else [])
     t0 = time.perf_counter()
     status, summary = launch(spec)
     wall = time.perf_counter() - t0

@@ -107,7 +107,9 @@ class Monitor:
                     self.event("rejoin", kk.uav)
             else:
                 self.alive.discard(kk.uav)
-                if not self.done:
+                j = self.uavs.index(kk.uav) if kk.uav in self.uavs else None
+                finished = j is not None and self.k_now >= self.K and np.isfinite(self.res.pos[self.K - 1, j, 0])
+                if not self.done and not finished:
                     self.event("dropout", kk.uav)
             return
         payload = item.payload.to_bytes()

@@ -17,6 +17,7 @@ has acted (the UAV's token gone / back), so a fault always lands between the sam
 from __future__ import annotations
 
 import argparse
+import json
 import time
 
 import numpy as np
@@ -51,6 +52,8 @@ def parse_args(argv=None):
     p.add_argument("--epoch-timeout", type=float, default=60.0)
     p.add_argument("--startup-timeout", type=float, default=180.0)
     p.add_argument("--fault-timeout", type=float, default=60.0)
+    p.add_argument("--garbage-at", type=int, default=None,
+                   help="test hook: at this epoch publish garbage on every key the nodes listen to")
     p.add_argument("--no-monitor", action="store_true", help="do not wait for a monitor at start")
     p.add_argument("--zenoh-config", default=None)
     return p.parse_args(argv)
@@ -165,6 +168,16 @@ class SensorSim:
             self.pump(min(0.2, dl.left() + 1e-3))
         return True
 
+    def garbage(self, k: int) -> None:
+        """Test hook: one bad message per key a node listens to (each must be rejected and counted)."""
+        bad = [b"not json", b'{"v": 99}', json.dumps({"v": 1, "uav": 1, "k": k, "r": 0, "pos": [float("nan")] * 3}).encode()]
+        for u in self.uavs:
+            for i, topic in enumerate(M.SENSOR_MSG):
+                self.pubs[(u, topic)].put(bad[i % len(bad)])
+            self.s.put(keys.uav(self.run, u, "state"), bad[(u + 1) % len(bad)])
+        self.pub_clock.put(b'{"v": 1, "k": -3}')
+        self.log.info("garbage published at epoch %d", k)
+
     def clock(self, k: int, **kw) -> None:
         t = self.meta.epoch_time(k)
         self.pub_clock.put(M.ClockMsg(k=k, t=t, n_epochs=self.K, **kw).encode())
@@ -196,6 +209,8 @@ class SensorSim:
             else:
                 self.pump(0)
             part = sorted(self.alive_uav)
+            if a.garbage_at == k:
+                self.garbage(k)
             self.clock(k, participants=part)
             for u in part:
                 j = self.uavs.index(u)

@@ -1,0 +1,112 @@
+"""Wire messages: float64-exact round trips, EpochInput split/join, and rejection of bad input."""
+
+import json
+import logging
+
+import numpy as np
+import pytest
+
+from swarmnav.dataset import EpochInput
+from swarmnav.estimators.base import LinkClass, LinkInfo, NodeEstimate, NodeState
+from swarmnav.wire import messages as M
+
+
+def _state(rng):
+    return NodeState(3, 5, 2, 5.0, rng.normal(size=3) * 1e3, np.diag(rng.random(3)), rng.normal(size=3),
+                     float("inf"), {1: 12.345678901234567, 7: float(rng.random() * 400)})
+
+
+def test_state_float64_exact():
+    rng = np.random.default_rng(0)
+    s = _state(rng)
+    s2 = M.msg_to_state(M.decode(M.StateMsg, M.state_to_msg(s).encode(), uav=3))
+    assert np.array_equal(s.pos, s2.pos) and np.array_equal(s.pos_cov, s2.pos_cov) and np.array_equal(s.vel, s2.vel)
+    assert s2.delta_m == float("inf") and s2.ranges == s.ranges and (s2.uav, s2.k, s2.r) == (3, 5, 2)
+
+
+def test_extreme_floats_exact():
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=5000) * 10.0 ** rng.integers(-300, 300, 5000)
+    m = M.ImuMsg(uav=1, k=1, t=1.0, t_prev=0.0, imu_t=list(map(float, x)), gyro=[0.0] * 15000, accel=[0.0] * 15000)
+    back = M.decode(M.ImuMsg, m.encode())
+    assert np.array_equal(np.array(back.imu_t), x)
+
+
+def test_estimate_round_trip():
+    rng = np.random.default_rng(2)
+    e = NodeEstimate(2, 9, 9.0, rng.normal(size=3), rng.normal(size=3), np.eye(3) * 0.3, np.array([1.0, 0, 0, 0]),
+                     [LinkInfo(4, LinkClass.H1_INTERFERED, 2.5, 0.3)], 3, 1.5, 4.0, 0.4)
+    e2 = M.msg_to_estimate(M.decode(M.EstimateMsg, M.estimate_to_msg(e).encode(), uav=2))
+    assert np.array_equal(e.pos, e2.pos) and e2.links[0].cls == LinkClass.H1_INTERFERED and e2.delta_h_m == 4.0
+
+
+def test_epoch_input_split_join_exact():
+    rng = np.random.default_rng(3)
+    inp = EpochInput(uav=2, k=4, t=4.0, t_prev=3.0, imu_t=np.arange(3.0, 4.0, 0.01), gyro=rng.normal(size=(100, 3)),
+                     accel=rng.normal(size=(100, 3)), gnss_pos=rng.normal(size=3), gnss_vel=rng.normal(size=3),
+                     gnss_pos_sigma=np.array([5.0, 5, 8]), gnss_vel_sigma=0.2, range_t=np.array([4.0, 4.0]),
+                     range_other=np.array([1, 3]), range_tag_self=np.array([0, 0]), range_tag_other=np.array([0, 0]),
+                     range_m=np.array([50.1, 80.2]), range_sigma=np.array([0.1, 0.1]), rel_target=np.array([1]),
+                     rel_az=np.array([0.3]), rel_el=np.array([-0.1]), rel_sigma=np.array([0.017]))
+    msgs = {t: M.decode(M.SENSOR_MSG[t], m.encode(), uav=2) for t, m in M.epoch_input_to_msgs(inp, [3, 1, 2]).items()}
+    assert msgs["epoch"].participants == [1, 2, 3] and set(msgs["epoch"].parts) == {"imu", "gnss", "uwb", "rel"}
+    out = M.msgs_to_epoch_input(msgs)
+    for f in inp.__dataclass_fields__:
+        a, b = getattr(inp, f), getattr(out, f)
+        if isinstance(a, np.ndarray):
+            assert a.dtype.kind == b.dtype.kind and np.array_equal(a, b), f
+        else:
+            assert a == b, f
+
+
+def _good_uwb():
+    return M.UwbMsg(uav=2, k=4, range_t=[4.0], other=[1], tag_self=[0], tag_other=[0], range_m=[50.0], sigma=[0.1])
+
+
+@pytest.mark.parametrize("mutate,reason", [
+    (lambda d: d.update(v=2), "version"),
+    (lambda d: d.pop("v"), "version"),
+    (lambda d: d.update(range_m=[-1.0]), "invalid"),
+    (lambda d: d.update(range_m=[float("nan")]), "invalid"),
+    (lambda d: d.update(sigma=[0.0]), "invalid"),
+    (lambda d: d.update(other=[2]), "invalid"),
+    (lambda d: d.update(range_t=[4.0, 5.0]), "invalid"),
+    (lambda d: d.update(extra=1), "invalid"),
+    (lambda d: d.update(uav=3), "wrong_uav"),
+    (lambda d: d.update(k=1), "stale"),
+])
+def test_rejects(mutate, reason):
+    d = json.loads(_good_uwb().encode())
+    mutate(d)
+    payload = json.dumps(d).encode()  # json writes NaN as NaN: must still be rejected
+    with pytest.raises(M.WireError) as e:
+        M.decode(M.UwbMsg, payload, uav=2, min_k=3)
+    assert e.value.reason == reason
+
+
+@pytest.mark.parametrize("payload", [b"", b"\xff\xfe", b"[1,2]", b"{", b"null", b"garbage"])
+def test_rejects_malformed(payload):
+    with pytest.raises(M.WireError) as e:
+        M.decode(M.StateMsg, payload)
+    assert e.value.reason in ("malformed", "version")
+
+
+def test_state_nan_rejected_inf_only_in_delta():
+    d = json.loads(M.state_to_msg(_state(np.random.default_rng(4))).encode())
+    d["delta_m"] = float("nan")
+    with pytest.raises(M.WireError):
+        M.decode(M.StateMsg, json.dumps(d))
+    d["delta_m"] = 1.0
+    d["pos"] = [float("inf"), 0, 0]
+    with pytest.raises(M.WireError):
+        M.decode(M.StateMsg, json.dumps(d))
+
+
+def test_rejects_counter(caplog):
+    r = M.Rejects(logging.getLogger("t"))
+    with caplog.at_level(logging.WARNING):
+        r.add("imu", M.WireError("malformed", "x"))
+        r.add("imu", M.WireError("malformed", "y"))
+        r.add("state", M.WireError("stale", "z"))
+    assert r.total == 3 and r.as_dict() == {"imu:malformed": 2, "state:stale": 1}
+    assert "rejected message on imu" in caplog.text
