@@ -1,0 +1,164 @@
+"""Double-threshold link fault detection of the paper (§2.3.2) — pure numpy (+ scikit-learn K-means).
+
+Step 1, residual matrix: ∂_ij = | d_ij − ‖p̂_i − p̂_j‖ | for every pair (i < j) that has a range this
+epoch, on the *current* position estimates (every node's last broadcast), pairs sorted by UAV id so
+every node of the swarm builds the same matrix from the same broadcasts.
+
+Step 2, upper threshold Δh: 2-means clustering of the residuals (scikit-learn ``KMeans(2)``, or the
+exact 1-D 2-means optimum — same objective, solved by scanning every split of the sorted values);
+Δh = the decision boundary between the clusters = midpoint of the largest "low" residual and the
+smallest "high" one.
+
+*Fault-free guard.* K-means always splits, also when every link is clean (it then cuts the noise in
+two). So Δh is never allowed below ``floor_factor × Δl`` (default 3): with no fault present every
+residual is ≲ Δl (Δl is the 99th percentile of fault-free converged residuals), so nothing clean is
+excluded, and a clean residual that does exceed Δl is only down-weighted (H1), not removed.
+
+Step 3, Δl: offline training (``swarmnav.calibration``), or ``fallback_sigmas × σ_uwb``.
+
+Classification: H0 (∂ > Δh, excluded), H1 (Δl < ∂ ≤ Δh, weight l(∂) of eq. 24), H2 (∂ ≤ Δl, full).
+
+**Eq. 24 weight and how it enters the cost.** l(∂) = 1 below Δl; Δl/∂ · ((Δh − ∂)/(Δh − Δl))²
+between; 0 from Δh. It is continuous at both thresholds (1 at Δl, 0 at Δh). We use l as an **IRLS
+weight on the squared residual** — the link's cost is ``½ l (r/σ)²`` (equivalently its sigma is
+divided by √l) — not as a factor on the residual as eq. 25 literally writes it (that would give
+``½ l² (r/σ)²``). Reason: Δl/|∂| is exactly Huber's IRLS weight with threshold Δl and the squared
+bracket is a Tukey-like taper to zero at Δh, so read as a weight, eq. 24 is a redescending
+M-estimator and the iteration over rounds is IRLS. Tested in tests/test_detection.py.
+
+Sparse data (real recordings): :class:`ResidualWindow` keeps the residuals of the last W epochs and
+K-means runs on the window (``residual_window_epochs``); classification still uses the current
+epoch's residuals.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Mapping
+
+import numpy as np
+
+from .base import LinkClass
+
+H0, H1, H2 = LinkClass.H0_FAILED, LinkClass.H1_INTERFERED, LinkClass.H2_NORMAL
+
+DEFAULT_FLOOR_FACTOR = 3.0
+
+
+def residual_matrix(positions: Mapping[int, np.ndarray], ranges: Mapping[tuple[int, int], float]
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals of every ranged pair whose both ends have a position.
+
+    ``ranges`` maps (a, b) with a < b to the measured range. Returns (pairs (m,2) int sorted by
+    (a, b), residuals (m,)).
+    """
+    keys = sorted(k for k in ranges if k[0] in positions and k[1] in positions)
+    if not keys:
+        return np.zeros((0, 2), np.int64), np.zeros(0)
+    pairs = np.array(keys, np.int64)
+    pa = np.array([positions[a] for a, _ in keys], float)
+    pb = np.array([positions[b] for _, b in keys], float)
+    d = np.array([ranges[k] for k in keys], float)
+    return pairs, np.abs(d - np.linalg.norm(pa - pb, axis=1))
+
+
+def two_means_boundary(x: np.ndarray, backend: str = "exact") -> float | None:
+    """Boundary between the two K-means clusters of scalars ``x`` (None if < 2 distinct values).
+
+    backend "sklearn": ``KMeans(2, n_init=1)`` initialised at (min, max) — deterministic;
+    "exact": the global optimum of the same 1-D objective (every split of the sorted values).
+    """
+    x = np.sort(np.asarray(x, float).ravel())
+    if len(x) < 2 or x[-1] - x[0] <= 1e-12:
+        return None
+    if backend == "sklearn":
+        from sklearn.cluster import KMeans
+
+        km = KMeans(2, n_init=1, init=np.array([[x[0]], [x[-1]]]), max_iter=100, tol=0.0)
+        lab = km.fit_predict(x[:, None])
+        hi_lab = int(np.argmax(km.cluster_centers_[:, 0]))
+        low, high = x[lab != hi_lab], x[lab == hi_lab]
+        if len(low) == 0 or len(high) == 0:
+            return None
+        return 0.5 * (float(low.max()) + float(high.min()))
+    if backend != "exact":
+        raise ValueError(f"unknown K-means backend {backend!r}")
+    n = len(x)
+    c1 = np.cumsum(x)
+    c2 = np.cumsum(x * x)
+    s = np.arange(1, n)  # split: low = x[:s], high = x[s:]
+    sse_lo = c2[s - 1] - c1[s - 1] ** 2 / s
+    sse_hi = (c2[-1] - c2[s - 1]) - (c1[-1] - c1[s - 1]) ** 2 / (n - s)
+    i = int(np.argmin(sse_lo + sse_hi))
+    return 0.5 * (x[i] + x[i + 1])
+
+
+def upper_threshold(residuals: np.ndarray, delta_l: float, floor_factor: float = DEFAULT_FLOOR_FACTOR,
+                    backend: str = "exact") -> float:
+    """Δh = max(K-means boundary, floor_factor × Δl) (fault-free guard, module docstring)."""
+    floor = floor_factor * delta_l
+    b = two_means_boundary(residuals, backend)
+    return floor if b is None else max(b, floor)
+
+
+def classify(residuals: np.ndarray, delta_l: float, delta_h: float) -> np.ndarray:
+    """H0 / H1 / H2 per residual (array of LinkClass ints)."""
+    r = np.abs(np.asarray(residuals, float))
+    out = np.full(r.shape, int(H2), np.int64)
+    out[r > delta_l] = int(H1)
+    out[r > delta_h] = int(H0)
+    return out
+
+
+def classify_single(residuals: np.ndarray, delta_h: float) -> np.ndarray:
+    """Single-threshold test at Δh (the paper's motivation): H0 above Δh, H2 otherwise."""
+    r = np.abs(np.asarray(residuals, float))
+    return np.where(r > delta_h, int(H0), int(H2)).astype(np.int64)
+
+
+def weight_eq24(residuals, delta_l: float, delta_h: float) -> np.ndarray:
+    """Eq. 24: 1 (∂ < Δl); Δl/∂ ((Δh − ∂)/(Δh − Δl))² (Δl ≤ ∂ < Δh); 0 (∂ ≥ Δh).
+
+    Used as an IRLS weight on the squared whitened residual (module docstring).
+    """
+    r = np.abs(np.asarray(residuals, float))
+    w = np.ones_like(r)
+    if delta_h <= delta_l:
+        w[r >= delta_l] = 0.0
+        return w
+    mid = (r >= delta_l) & (r < delta_h)
+    rm = r[mid]
+    w[mid] = delta_l / rm * ((delta_h - rm) / (delta_h - delta_l)) ** 2
+    w[r >= delta_h] = 0.0
+    return w
+
+
+class ResidualWindow:
+    """Residuals of the last ``epochs`` epochs for clustering on sparse data."""
+
+    def __init__(self, epochs: int = 1):
+        self.epochs = max(1, int(epochs))
+        self._hist: deque[np.ndarray] = deque(maxlen=self.epochs - 1 if self.epochs > 1 else 0)
+
+    def values(self, current: np.ndarray) -> np.ndarray:
+        """The current epoch's residuals together with those of the previous W−1 epochs."""
+        if not self._hist:
+            return np.asarray(current, float)
+        return np.concatenate([*self._hist, np.asarray(current, float)])
+
+    def push(self, final: np.ndarray) -> None:
+        """Store an epoch's final (last-round) residuals."""
+        if self.epochs > 1:
+            self._hist.append(np.asarray(final, float).copy())
+
+
+def detect(pairs_res: np.ndarray, delta_l: float, window: ResidualWindow | None = None,
+           floor_factor: float = DEFAULT_FLOOR_FACTOR, backend: str = "exact"
+           ) -> tuple[float, np.ndarray, np.ndarray]:
+    """Δh, classes and eq. 24 weights for the current residuals (convenience wrapper)."""
+    pool = window.values(pairs_res) if window is not None else pairs_res
+    dh = upper_threshold(pool, delta_l, floor_factor, backend)
+    cls = classify(pairs_res, delta_l, dh)
+    w = weight_eq24(pairs_res, delta_l, dh)
+    w[cls == int(H0)] = 0.0
+    return dh, cls, w

@@ -1,0 +1,456 @@
+"""Per-UAV factor-graph estimators: ``atvfg`` (the paper), ``fg`` (all links Gaussian), ``ins`` (alone).
+
+One local graph per UAV, bounded cost via ``gtsam.IncrementalFixedLagSmoother`` (lag
+``fixed_lag_s``): pose X, velocity V and IMU bias B per epoch; ``CombinedImuFactor`` between epochs
+(zero-order-hold preintegration, ``imu.py``); GNSS position (``GPSFactor``) and velocity priors;
+known-anchor ranges (real data) and altitude; prior from :class:`InitialState`.
+
+Epoch k (driven by ``swarmnav.protocol``):
+
+``begin_epoch``
+    preintegrate, predict, add the node's *own* factors (IMU, GNSS, anchors, altitude) and update the
+    smoother — the **local estimate** p_loc with marginal P_loc (no cooperative information of
+    epoch k yet). Broadcast round 0: p_loc, P_loc and the node's ranges.
+``iterate(r, peers)``
+    the epoch's UWB part is rebuilt from scratch every round (the time-varying graph):
+    atvfg — residual matrix over every ranged pair on the round's broadcast positions → Δh by
+    2-means → H0/H1/H2 (detection.py); H0 neighbours leave the graph (range *and* az/el), H1 links
+    get the eq. 24 weight, H2 full weight. fg — every in-range link, weight 1. Then a small
+    Gauss–Newton solve on the node's own position: the local prior N(p_loc, P_loc) plus the range
+    (and eq. 27 az/el) factors to the neighbours, whose broadcast positions enter with their
+    covariance marginalised into each factor's noise ("factor to an uncertain neighbour",
+    factors.effective_range_sigma). Cheap: ~0.1 ms, no smoother work per round.
+``end_epoch``
+    commit once: the cooperative factors, linearised at the converged position, are summarised as
+    one Gaussian position factor (information Λ = Σ w JᵀJ/s², mean from the gradient) and added to
+    the smoother; one update; NodeEstimate with the smoother's pose/velocity, pos_cov =
+    (P_loc⁻¹ + Λ)⁻¹, link classes and the thresholds.
+
+**Double counting.** A neighbour's estimate already contains this node's information. Remedy
+(documented in docs/estimators.md, checked with NEES): every broadcast carries the round's
+cooperative *mean* (so residuals and the neighbours' linearisation improve round by round) but the
+**local covariance P_loc**, the node's uncertainty *before* any cooperative information of the epoch
+— always ≥ its cooperative posterior, so a receiver never treats information it contributed itself
+in this epoch as independent. On top, receivers inflate that covariance by
+``neighbour_cov_inflation`` (default 1) — covariance-intersection-style conservatism for the
+information that went round through earlier epochs. Committing each epoch's cooperative summary
+only once (at ``end_epoch``) keeps the rounds from being re-counted.
+
+Choices: range timestamps inside the epoch are treated as at the epoch time; the node's own tag
+lever arm is applied with its current attitude, a neighbour's is ignored (its attitude is not
+broadcast); an az/el observation of a neighbour takes that neighbour's range weight (an H0
+neighbour loses both).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import gtsam
+from gtsam.symbol_shorthand import B, V, X
+
+from ..dataset import DatasetMeta, EpochInput
+from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState
+from . import detection as det
+from .factors import stacked_range_factor, wrap_angle
+from .imu import preintegrate, preintegration_params
+
+__all__ = ["AtvfgEstimator", "FgEstimator", "InsEstimator", "GraphEstimator", "link_sigma"]
+
+
+def link_sigma(sigma: float, weight: float) -> float:
+    """Sigma of a link with IRLS weight ``weight`` (eq. 24 scales the squared residual)."""
+    return float(sigma / np.sqrt(weight)) if weight > 0 else float("inf")
+
+
+def _rot3(q: np.ndarray) -> gtsam.Rot3:
+    return gtsam.Rot3.Quaternion(float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+
+
+class GraphEstimator(NodeEstimator):
+    """Shared machinery. Subclasses set ``cooperative`` and ``detect``."""
+
+    name = "graph"
+    cooperative = True
+    detect = False
+
+    def __init__(self, uav: int, meta: DatasetMeta, settings: dict, init: InitialState):
+        super().__init__(uav, meta, settings, init)
+        s = settings or {}
+        self.lag = float(s.get("fixed_lag_s", 5.0))
+        self.uwb_sigma = float(meta.uwb_sigma_m)
+        self.rel_sigma = float(meta.rel_sigma_rad) if meta.rel_sigma_rad else None
+        dl = s.get("delta_l_m")
+        self.delta_l = float(dl) if dl else float(s.get("delta_l_fallback_sigmas", 3.0)) * self.uwb_sigma
+        self.floor_factor = float(s.get("delta_h_floor_factor", det.DEFAULT_FLOOR_FACTOR))
+        self.kmeans_backend = str(s.get("kmeans_backend", "exact"))
+        self.use_azel = bool(s.get("use_azel", True))
+        self.cov_infl = float(s.get("neighbour_cov_inflation", 1.0))
+        self.gn_iters = int(s.get("gn_iterations", 2))
+        self.window = det.ResidualWindow(int(s.get("residual_window_epochs", 1)))
+        node = meta.node(uav)
+        self.tags = {int(k): np.asarray(v, float) for k, v in node.tags.items()}
+        self.anchors = meta.anchors()
+        self.params = preintegration_params(node.imu, meta.earth)
+        # Conditioning: the tiny bias random walks of a good IMU (~1e-7 rad/s/sqrt(s)) make the
+        # CombinedImuFactor's bias block ~1e14 times stiffer than the rest and ISAM2 reports an
+        # indeterminate system; floor them (documented tuning, settings "bias_rw_floor").
+        fg_, fa_ = (settings or {}).get("bias_rw_floor", (1e-5, 1e-4))
+        self.params.setBiasOmegaCovariance(np.eye(3) * max(node.imu.gyro_bias_rw, fg_) ** 2)
+        self.params.setBiasAccCovariance(np.eye(3) * max(node.imu.accel_bias_rw, fa_) ** 2)
+        # the dataset's reported GNSS sigma already includes the receiver's time-correlated part
+        self.gnss_extra_var = float((settings or {}).get("gnss_extra_var_m2", 0.0))
+        self.commit_weight = float((settings or {}).get("commit_weight", 0.3))
+        self.gnss_scale = float((settings or {}).get("gnss_sigma_scale", 2.5))
+        imu = node.imu
+        self.bias_sigmas = np.r_[[max(imu.accel_bias_sigma, 1e-4)] * 3, [max(imu.gyro_bias_sigma, 1e-6)] * 3]
+        self._reset(init.t, init.pos, init.vel, init.quat, np.asarray(init.pos_sigma, float),
+                    float(init.vel_sigma), np.asarray(init.att_sigma, float))
+
+    # -- set-up ------------------------------------------------------------------------------
+
+    def _reset(self, t, pos, vel, quat, pos_sigma, vel_sigma, att_sigma):
+        p = gtsam.ISAM2Params()
+        p.setRelinearizeThreshold(0.05)
+        p.relinearizeSkip = 1
+        p.setFactorization("QR")
+        self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag, p)
+        self.n = 0
+        self.t = float(t)
+        R = _rot3(quat)
+        self.pose = gtsam.Pose3(R, np.asarray(pos, float))
+        self.vel = np.asarray(vel, float)
+        self.bias = gtsam.imuBias.ConstantBias()
+        Rm = R.matrix()
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = np.diag(np.maximum(att_sigma, 1e-4) ** 2)
+        cov[3:, 3:] = Rm.T @ np.diag(np.maximum(pos_sigma, 1e-3) ** 2) @ Rm
+        g = gtsam.NonlinearFactorGraph()
+        g.add(gtsam.PriorFactorPose3(X(0), self.pose, gtsam.noiseModel.Gaussian.Covariance(cov)))
+        g.add(gtsam.PriorFactorVector(V(0), self.vel, gtsam.noiseModel.Isotropic.Sigma(3, max(vel_sigma, 1e-3))))
+        g.add(gtsam.PriorFactorConstantBias(B(0), self.bias, gtsam.noiseModel.Diagonal.Sigmas(self.bias_sigmas)))
+        v = gtsam.Values()
+        v.insert(X(0), self.pose)
+        v.insert(V(0), self.vel)
+        v.insert(B(0), self.bias)
+        ts = gtsam.FixedLagSmootherKeyTimestampMap()
+        for k in (X(0), V(0), B(0)):
+            ts.insert((k, self.t))
+        self.smoother.update(g, v, ts)
+        self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.bias)
+        self.p_loc = np.asarray(pos, float)
+        self.P_loc = np.diag(np.maximum(pos_sigma, 1e-3) ** 2)
+        self.p = self.p_loc.copy()
+        self._links_ready = False
+
+    # -- epoch -------------------------------------------------------------------------------
+
+    def begin_epoch(self, inp: EpochInput) -> NodeState:
+        self.inp = inp
+        self.k = inp.k
+        self.pim.resetIntegrationAndSetBias(self.bias)
+        preintegrate(self.pim, inp)
+        pred = self.pim.predict(gtsam.NavState(self.pose, self.vel), self.bias)
+        n = self.n + 1
+        g = gtsam.NonlinearFactorGraph()
+        g.add(gtsam.CombinedImuFactor(X(n - 1), V(n - 1), X(n), V(n), B(n - 1), B(n), self.pim))
+        if inp.gnss_pos is not None:
+            sig = self.gnss_scale * np.sqrt(np.asarray(inp.gnss_pos_sigma, float) ** 2 + self.gnss_extra_var)
+            g.add(gtsam.GPSFactor(X(n), np.asarray(inp.gnss_pos, float), gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        if inp.gnss_vel is not None and inp.gnss_vel_sigma:
+            g.add(gtsam.PriorFactorVector(V(n), np.asarray(inp.gnss_vel, float),
+                                          gtsam.noiseModel.Isotropic.Sigma(3, float(inp.gnss_vel_sigma))))
+        if inp.altitude is not None:
+            g.add(self._altitude_factor(X(n), inp.altitude, inp.altitude_sigma or 0.1))
+        self._add_anchor_ranges(g, X(n), inp)
+        v = gtsam.Values()
+        v.insert(X(n), pred.pose())
+        v.insert(V(n), pred.velocity())
+        v.insert(B(n), self.bias)
+        ts = gtsam.FixedLagSmootherKeyTimestampMap()
+        for key in (X(n), V(n), B(n)):
+            ts.insert((key, inp.t))
+        self.smoother.update(g, v, ts)
+        self.n, self.t = n, inp.t
+        self._read_estimate()
+        cov6 = self.smoother.marginalCovariance(X(n))
+        Rm = self.pose.rotation().matrix()
+        self.P_loc = Rm @ cov6[3:, 3:] @ Rm.T
+        self.P_loc = 0.5 * (self.P_loc + self.P_loc.T)
+        self.p_loc = self.pose.translation().copy()
+        self.p = self.p_loc.copy()
+        self._info = np.linalg.inv(self.P_loc)
+        self._own_ranges(inp)
+        self.peer_ranges: dict[tuple[int, int], float] = {}
+        self.links: list[LinkInfo] = []
+        self.Lam = None
+        self.delta_h = None
+        self._last_state = NodeState(self.uav, inp.k, 0, inp.t, self.p.copy(), self._broadcast_cov(),
+                                     self.vel.copy(), float("inf"), dict(self.my_ranges))
+        return self._last_state
+
+    def _read_estimate(self):
+        est = self.smoother.calculateEstimate()
+        self.pose = est.atPose3(X(self.n))
+        self.vel = np.asarray(est.atVector(V(self.n)), float)
+        self.bias = est.atConstantBias(B(self.n))
+
+    def _broadcast_cov(self) -> np.ndarray:
+        return self.P_loc.copy()
+
+    def _altitude_factor(self, key, height, sigma):
+        def err(this, v, H):
+            P = v.atPose3(this.keys()[0])
+            if H is not None:
+                H[0] = np.hstack([np.zeros(3), P.rotation().matrix()[2]]).reshape(1, 6)
+            return np.array([P.translation()[2] - height])
+
+        return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, float(sigma)), [key], err)
+
+    def _add_anchor_ranges(self, g, key, inp: EpochInput):
+        if not self.anchors or len(inp.range_other) == 0:
+            return
+        m = np.isin(inp.range_other, list(self.anchors))
+        if not m.any():
+            return
+        pts = np.array([self.anchors[int(o)] for o in inp.range_other[m]])
+        levers = np.array([self.tags.get(int(t), np.zeros(3)) for t in inp.range_tag_self[m]])
+        sig = np.where(inp.range_sigma[m] > 0, inp.range_sigma[m], self.uwb_sigma)
+        f = stacked_range_factor(key, pts, inp.range_m[m], sig, levers)
+        # anchors are known, not broadcast: a Huber kernel (k = 3 sigma, whitened) guards NLOS
+        huber = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(3.0),
+                                               gtsam.noiseModel.Unit.Create(int(m.sum())))
+        g.add(gtsam.CustomFactor(huber, [key], _unwrap_error(f)))
+
+    def _own_ranges(self, inp: EpochInput):
+        """Inter-UAV ranges this node took part in: per other UAV, the mean and the tag offsets."""
+        self.my_ranges: dict[int, float] = {}
+        self._rows: dict[int, list[int]] = {}
+        uavs = set(self.meta.uav_ids())
+        for i, o in enumerate(inp.range_other):
+            o = int(o)
+            if o in uavs and o != self.uav and np.isfinite(inp.range_m[i]) and inp.range_m[i] > 0:
+                self._rows.setdefault(o, []).append(i)
+        for o, rows in sorted(self._rows.items()):
+            self.my_ranges[o] = float(np.mean(inp.range_m[rows]))
+
+    # -- rounds ------------------------------------------------------------------------------
+
+    def iterate(self, r: int, peers: dict[int, NodeState]) -> NodeState:
+        if not self.cooperative:
+            s = self._last_state
+            self._last_state = NodeState(self.uav, s.k, r, s.t, s.pos, s.pos_cov, s.vel, 0.0)
+            return self._last_state
+        for j, s in peers.items():
+            for o, d in s.ranges.items():
+                key = (min(j, o), max(j, o))
+                self.peer_ranges.setdefault(key, float(d))
+        nb = sorted(o for o in self._rows if o in peers)
+        weights = {o: 1.0 for o in nb}
+        res_own = {}
+        if self.detect and nb:
+            ranges = dict(self.peer_ranges)
+            for o, d in self.my_ranges.items():
+                ranges[(min(self.uav, o), max(self.uav, o))] = d
+            positions = {j: s.pos for j, s in peers.items()}
+            positions[self.uav] = self._last_state.pos
+            pairs, res = det.residual_matrix(positions, ranges)
+            self.delta_h, cls, w = det.detect(res, self.delta_l, self.window, self.floor_factor, self.kmeans_backend)
+            self._final_res = res
+            mine = np.flatnonzero((pairs[:, 0] == self.uav) | (pairs[:, 1] == self.uav))
+            for i in mine:
+                o = int(pairs[i, 1] if pairs[i, 0] == self.uav else pairs[i, 0])
+                if o in weights:
+                    weights[o] = float(w[i])
+                    res_own[o] = (float(res[i]), int(cls[i]))
+        self._weights, self._res_own, self._nb = weights, res_own, nb
+        self._peers = peers
+        self._prepare_links()
+        p_prev = self.p.copy()
+        p = self.p.copy()
+        for _ in range(self.gn_iters):
+            H, gvec = self._normal_equations(p)
+            dp = np.linalg.solve(H, gvec)
+            p = p + dp
+            if np.linalg.norm(dp) < 1e-4:
+                break
+        self.p = p
+        self._links_ready = True
+        s = NodeState(self.uav, self.k, r, self.t, p.copy(), self._broadcast_cov(), self.vel.copy(),
+                      float(np.linalg.norm(p - p_prev)))
+        self._last_state = s
+        return s
+
+    def _prepare_links(self):
+        """Arrays of this round's active links (weights > 0) for the Gauss-Newton solve."""
+        inp, peers = self.inp, self._peers
+        Rm = self.pose.rotation().matrix()
+        rows, pj, Pj, w = [], [], [], []
+        for o in self._nb:
+            wo = self._weights[o]
+            if wo <= 0:
+                continue
+            s = peers[o]
+            for i in self._rows[o]:
+                rows.append(i)
+                pj.append(s.pos)
+                Pj.append(s.pos_cov)
+                w.append(wo)
+        L = {}
+        if rows:
+            rows = np.array(rows)
+            L["rng"] = (np.array(pj), np.array(Pj) * self.cov_infl, np.array(w),
+                        np.array([self.tags.get(int(t), np.zeros(3)) for t in inp.range_tag_self[rows]]) @ Rm.T,
+                        np.where(inp.range_sigma[rows] > 0, inp.range_sigma[rows], self.uwb_sigma) ** 2,
+                        inp.range_m[rows])
+        if self.use_azel and self.rel_sigma and len(inp.rel_target):
+            idx = [i for i, o in enumerate(inp.rel_target) if int(o) in peers and self._weights.get(int(o), 1.0) > 0]
+            if idx:
+                tg = [int(inp.rel_target[i]) for i in idx]
+                st = np.array([inp.rel_sigma[i] if inp.rel_sigma[i] > 0 else self.rel_sigma for i in idx])
+                L["azel"] = (np.array([peers[o].pos for o in tg]), np.array([peers[o].pos_cov for o in tg]) * self.cov_infl,
+                             np.array([self._weights.get(o, 1.0) for o in tg]), st ** 2,
+                             np.column_stack([inp.rel_az[idx], inp.rel_el[idx]]))
+        self._L = L
+
+    def _normal_equations(self, p: np.ndarray, coop_only: bool = False):
+        """Gauss-Newton normal equations (H, g) of prior + cooperative factors at own position p."""
+        if coop_only:
+            H, gv = np.zeros((3, 3)), np.zeros(3)
+        else:
+            H, gv = self._info.copy(), self._info @ (self.p_loc - p)
+        L = self._L
+        if "rng" in L:
+            pj, Pj, w, lev, sig2, z = L["rng"]
+            d = p + lev - pj
+            rr = np.sqrt(np.einsum("ij,ij->i", d, d))
+            u = d / np.maximum(rr, 1e-9)[:, None]
+            a = w / (sig2 + np.einsum("ni,nij,nj->n", u, Pj, u))
+            H += (u * a[:, None]).T @ u
+            gv += u.T @ (a * (z - rr))
+        if "azel" in L:
+            pt, Pt, wt, st2, z = L["azel"]
+            dd = pt - p
+            e, nn, uu = dd[:, 0], dd[:, 1], dd[:, 2]
+            h2 = np.maximum(e * e + nn * nn, 1e-12)
+            h = np.sqrt(h2)
+            r2 = h2 + uu * uu
+            Jt = np.empty((len(e), 2, 3))
+            Jt[:, 0, 0], Jt[:, 0, 1], Jt[:, 0, 2] = -nn / h2, e / h2, 0.0
+            Jt[:, 1, 0], Jt[:, 1, 1], Jt[:, 1, 2] = -e * uu / (h * r2), -nn * uu / (h * r2), h / r2
+            res = np.column_stack([wrap_angle(z[:, 0] - np.arctan2(nn, e)), z[:, 1] - np.arctan2(uu, h)])
+            C = np.einsum("mij,mjk,mlk->mil", Jt, Pt, Jt)
+            C[:, 0, 0] += st2
+            C[:, 1, 1] += st2
+            det_ = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
+            Ci = np.empty_like(C)
+            Ci[:, 0, 0], Ci[:, 1, 1] = C[:, 1, 1] / det_, C[:, 0, 0] / det_
+            Ci[:, 0, 1], Ci[:, 1, 0] = -C[:, 0, 1] / det_, -C[:, 1, 0] / det_
+            Ci *= wt[:, None, None]
+            # Jo = -Jt: H += Jt^T Ci Jt, g += -Jt^T Ci res
+            CiJ = np.einsum("mjk,mkl->mjl", Ci, Jt)
+            H += np.einsum("mji,mjl->il", Jt, CiJ)
+            gv -= np.einsum("mji,mj->i", CiJ, res)
+        return H, gv
+
+    # -- end ---------------------------------------------------------------------------------
+
+    def end_epoch(self) -> NodeEstimate:
+        links: list[LinkInfo] = []
+        pos_cov = self.P_loc
+        if self.cooperative and self._links_ready:
+            Lam, gsum = self._normal_equations(self.p, coop_only=True)
+            if np.trace(Lam) > 0 and self.commit_weight > 0:
+                Lam, gsum = Lam * self.commit_weight, gsum * self.commit_weight
+                Lr = Lam + 1e-8 * np.eye(3)
+                z = self.p + np.linalg.solve(Lr, gsum)
+                Lr = 0.5 * (Lr + Lr.T)
+                g = gtsam.NonlinearFactorGraph()
+                g.add(gtsam.GPSFactor(X(self.n), z, gtsam.noiseModel.Gaussian.Information(Lr)))
+                self.smoother.update(g, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
+                self._read_estimate()
+                pos_cov = np.linalg.inv(self._info + Lam)
+            for o in self._nb:
+                res, cls = self._res_own.get(o, (float("nan"), int(LinkClass.H2_NORMAL)))
+                links.append(LinkInfo(o, LinkClass(cls), res, float(self._weights[o])))
+            if self.detect and hasattr(self, "_final_res"):
+                self.window.push(self._final_res)
+        self._links_ready = False
+        q = self.pose.rotation().toQuaternion()
+        return NodeEstimate(self.uav, self.k, self.t, self.pose.translation().copy(), self.vel.copy(),
+                            0.5 * (pos_cov + pos_cov.T), np.array([q.w(), q.x(), q.y(), q.z()]), links,
+                            delta_h_m=self.delta_h if self.detect else None,
+                            delta_l_m=self.delta_l if self.detect else None)
+
+    # -- restart -----------------------------------------------------------------------------
+
+    def bootstrap(self, t: float, peers: dict[int, NodeState], inp: EpochInput | None) -> None:
+        """Re-initialise a restarted node at time ``t``: position from GNSS if present, else a
+        multilateration on the peers' states with this epoch's ranges (else the peers' centroid);
+        velocity from GNSS or the peers' mean; attitude level with yaw along the velocity (a
+        coarse alignment: roll/pitch σ 0.5°, yaw σ 10°)."""
+        pos_sigma = np.array([10.0, 10.0, 10.0])
+        if inp is not None and inp.gnss_pos is not None:
+            pos = np.asarray(inp.gnss_pos, float)
+            pos_sigma = np.sqrt(np.asarray(inp.gnss_pos_sigma, float) ** 2 + self.gnss_extra_var)
+        elif peers:
+            pos = np.mean([s.pos for s in peers.values()], axis=0)
+            if inp is not None:
+                rows = [(int(o), float(d)) for o, d in zip(inp.range_other, inp.range_m) if int(o) in peers]
+                if len(rows) >= 4:
+                    for _ in range(10):
+                        A, b = [], []
+                        for o, d in rows:
+                            dv = pos - peers[o].pos
+                            rr = max(np.linalg.norm(dv), 1e-6)
+                            A.append(dv / rr)
+                            b.append(d - rr)
+                        pos = pos + np.linalg.lstsq(np.array(A), np.array(b), rcond=None)[0]
+                    pos_sigma = np.array([3.0, 3.0, 3.0])
+        else:
+            pos = self.pose.translation()
+        if inp is not None and inp.gnss_vel is not None:
+            vel, vs = np.asarray(inp.gnss_vel, float), float(inp.gnss_vel_sigma or 0.2)
+        elif peers:
+            vel, vs = np.mean([s.vel for s in peers.values()], axis=0), 1.0
+        else:
+            vel, vs = self.vel, 1.0
+        yaw = float(np.arctan2(vel[1], vel[0])) if np.hypot(vel[0], vel[1]) > 1.0 else 0.0
+        # body FLU x along the velocity: rotation about U by the azimuth of the velocity
+        quat = np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+        self._reset(t, pos, vel, quat, pos_sigma, vs, np.deg2rad([0.5, 0.5, 10.0]))
+
+
+def _unwrap_error(f: gtsam.CustomFactor):
+    """Error callback of a unit-noise CustomFactor, to re-wrap it with another noise model."""
+    def err(this, v, H):
+        if H is None:
+            return f.unwhitenedError(v)
+        lin = f.linearize(v)
+        A, b = lin.jacobian()
+        H[0] = A
+        return -b
+    return err
+
+
+class AtvfgEstimator(GraphEstimator):
+    """The paper's adaptive time-varying factor graph (double-threshold detection, eq. 24)."""
+
+    name = "atvfg"
+    cooperative = True
+    detect = True
+
+
+class FgEstimator(GraphEstimator):
+    """Same distributed graph, every in-range link Gaussian, no detection."""
+
+    name = "fg"
+    cooperative = True
+    detect = False
+
+
+class InsEstimator(GraphEstimator):
+    """Each UAV alone: IMU + GNSS (or IMU + fixed anchors / altitude); no inter-UAV measurement."""
+
+    name = "ins"
+    cooperative = False
+    detect = False

@@ -1,0 +1,111 @@
+"""Double-threshold detection: residual matrix, K-means Δh with fault-free guard, eq. 24 weight."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from swarmnav.estimators import detection as D
+from swarmnav.estimators.base import LinkClass
+from swarmnav.estimators.factors import whitened_cost
+
+
+def test_residual_matrix_sorted_and_exact():
+    pos = {3: np.array([0.0, 0, 0]), 1: np.array([10.0, 0, 0]), 2: np.array([0.0, 20, 0])}
+    ranges = {(2, 3): 21.0, (1, 2): np.hypot(10, 20), (1, 3): 9.5, (1, 9): 5.0}  # 9 has no position
+    pairs, res = D.residual_matrix(pos, ranges)
+    assert pairs.tolist() == [[1, 2], [1, 3], [2, 3]]
+    np.testing.assert_allclose(res, [0.0, 0.5, 1.0], atol=1e-12)
+
+
+@pytest.mark.parametrize("dl,dh", [(0.3, 5.0), (1.0, 1.5), (0.05, 100.0)])
+def test_eq24_continuous_at_both_thresholds(dl, dh):
+    eps = 1e-9
+    w = D.weight_eq24([dl - eps, dl, dl + eps, dh - eps, dh, dh + eps], dl, dh)
+    assert w[0] == 1.0
+    assert abs(w[1] - 1.0) < 1e-12 and abs(w[2] - 1.0) < 1e-6
+    assert abs(w[3]) < 1e-6 and w[4] == 0.0 and w[5] == 0.0
+    # monotone non-increasing in between, in [0, 1]
+    grid = np.linspace(0, 1.2 * dh, 2001)
+    wg = D.weight_eq24(grid, dl, dh)
+    assert np.all(np.diff(wg) <= 1e-12) and wg.min() >= 0 and wg.max() <= 1
+    # the formula itself
+    r = 0.5 * (dl + dh)
+    assert D.weight_eq24([r], dl, dh)[0] == pytest.approx(dl / r * ((dh - r) / (dh - dl)) ** 2)
+
+
+def test_eq24_used_as_irls_weight_on_squared_residual():
+    # Documented choice: the link cost is ½ l (r/σ)², i.e. the sigma is divided by sqrt(l) — not ½ l² (r/σ)².
+    dl, dh, sigma = 0.3, 5.0, 0.1
+    r = 2.0
+    l = D.weight_eq24([r], dl, dh)[0]
+    assert whitened_cost([r], [sigma], [l]) == pytest.approx(0.5 * l * (r / sigma) ** 2)
+    assert whitened_cost([r], [sigma / np.sqrt(l)], [1.0]) == pytest.approx(0.5 * l * (r / sigma) ** 2)
+    # and the graph builds its links that way (see graph.link_sigma)
+    from swarmnav.estimators.graph import link_sigma
+
+    assert link_sigma(sigma, l) == pytest.approx(sigma / np.sqrt(l))
+
+
+def test_classification_three_hypotheses():
+    cls = D.classify([0.1, 0.3, 0.31, 4.9, 5.0, 5.01, 80.0], 0.3, 5.0)
+    H0, H1, H2 = int(LinkClass.H0_FAILED), int(LinkClass.H1_INTERFERED), int(LinkClass.H2_NORMAL)
+    assert cls.tolist() == [H2, H2, H1, H1, H1, H0, H0]
+    assert D.classify_single([0.1, 4.0, 6.0], 5.0).tolist() == [H2, H2, H0]
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_exact_two_means_matches_sklearn(seed):
+    rng = np.random.default_rng(seed)
+    x = np.concatenate([np.abs(rng.normal(0, 0.15, 140)), rng.uniform(20, 150, 12), rng.uniform(1, 8, 10)])
+    b_ex = D.two_means_boundary(x, "exact")
+    b_sk = D.two_means_boundary(x, "sklearn")
+    # K-means on raw residuals: every clean residual falls in the low cluster (the split may fall
+    # inside the widely spread failures, whose low part then gets a tiny eq. 24 weight)
+    for b in (b_ex, b_sk):
+        assert 0.6 < b < 150.0
+    # sklearn's Lloyd iteration reaches the exact 1-D optimum here, or a split no better than it
+    assert b_ex == pytest.approx(b_sk) or _sse(x, b_sk) >= _sse(x, b_ex) - 1e-9
+
+
+def _sse(x, b):
+    lo, hi = x[x < b], x[x >= b]
+    return float(((lo - lo.mean()) ** 2).sum() + ((hi - hi.mean()) ** 2).sum())
+
+
+def test_fault_free_guard_keeps_clean_links():
+    rng = np.random.default_rng(3)
+    dl = 0.35
+    x = np.abs(rng.normal(0, 0.12, 150))
+    assert D.two_means_boundary(x) < dl  # K-means still splits the noise...
+    dh, cls, w = D.detect(x, dl)
+    assert dh == pytest.approx(D.DEFAULT_FLOOR_FACTOR * dl)  # ...the guard lifts Δh
+    assert np.all(cls != int(LinkClass.H0_FAILED))
+    assert np.all(w > 0.3)
+
+
+def test_faulty_links_excluded_and_interfered_downweighted():
+    rng = np.random.default_rng(4)
+    clean = np.abs(rng.normal(0, 0.12, 140))
+    inter = rng.uniform(1.5, 6, 8)
+    fail = rng.uniform(30, 150, 10)
+    x = np.concatenate([clean, inter, fail])
+    dh, cls, w = D.detect(x, 0.35)
+    assert 6 < dh < 150
+    # failures: excluded, or (below a Δh that K-means put inside their spread) nearly zero weight
+    assert np.all(cls[-10:] != int(LinkClass.H2_NORMAL)) and np.all(w[-10:] < 0.02)
+    assert np.all(cls[140:148] == int(LinkClass.H1_INTERFERED)) and np.all((w[140:148] > 0) & (w[140:148] < 0.3))
+    assert np.mean(cls[:140] == int(LinkClass.H2_NORMAL)) > 0.97
+
+
+def test_sliding_window_pools_sparse_epochs():
+    win = D.ResidualWindow(3)
+    win.push(np.array([0.1, 0.2]))
+    win.push(np.array([50.0]))
+    pooled = win.values(np.array([0.15]))
+    assert sorted(pooled.tolist()) == [0.1, 0.15, 0.2, 50.0]
+    dh, cls, _ = D.detect(np.array([0.15]), 0.3, window=win)
+    assert dh > 0.9 and cls.tolist() == [int(LinkClass.H2_NORMAL)]
+    win.push(np.array([0.1]))
+    win.push(np.array([0.1]))
+    assert 50.0 not in win.values(np.array([0.1])).tolist()
