@@ -59,6 +59,7 @@ class Monitor:
         self.rejects = M.Rejects(log)
         self.events: list[dict] = []
         self.alive: set[int] = set()
+        self.dropped: set[int] = set()
         self.t_now = self.meta.t_start
         self.k_now = 0
         self.done = False
@@ -103,13 +104,15 @@ class Monitor:
                 if kk.uav in self.alive:
                     return
                 self.alive.add(kk.uav)
-                if self.k_now > 0:
+                if kk.uav in self.dropped:
+                    self.dropped.discard(kk.uav)
                     self.event("rejoin", kk.uav)
             else:
                 self.alive.discard(kk.uav)
                 j = self.uavs.index(kk.uav) if kk.uav in self.uavs else None
                 finished = j is not None and self.k_now >= self.K and np.isfinite(self.res.pos[self.K - 1, j, 0])
                 if not self.done and not finished:
+                    self.dropped.add(kk.uav)
                     self.event("dropout", kk.uav)
             return
         payload = item.payload.to_bytes()
