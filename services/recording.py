@@ -170,17 +170,16 @@ def send_series(path: str, t: np.ndarray, k: np.ndarray, values: np.ndarray, rec
                     columns=rr.Scalars.columns(scalars=v[ok]), recording=rec)
 
 
-def send_links(algo: str, t: np.ndarray, k: np.ndarray, per_epoch: list[tuple[np.ndarray, np.ndarray]],
-               rec: rr.RecordingStream | None = None) -> None:
-    """Link graph over time. ``per_epoch[i]`` = (segments (M,2,3), classes (M,)) for epoch k[i]."""
-    strips, colors, lengths = [], [], []
-    for segs, cls in per_epoch:
-        lengths.append(len(segs))
-        strips.extend(np.asarray(segs, float))
-        colors.extend(CLASS_COLORS.get(int(c), (128, 128, 128)) for c in cls)
-    if not strips:
+def send_links(algo: str, t: np.ndarray, k: np.ndarray, segments: np.ndarray, classes: np.ndarray,
+               counts: np.ndarray, rec: rr.RecordingStream | None = None) -> None:
+    """Link graph over time: ``segments`` (M,2,3) of all epochs concatenated in epoch order, their
+    classes (M,) and the number of segments of each epoch ``counts`` (len(t),)."""
+    segments = np.asarray(segments, float).reshape(-1, 2, 3)
+    if len(segments) == 0:
         return
     path = links_path(algo)
     rr.log(path, rr.LineStrips3D.from_fields(radii=[0.3]), static=True, recording=rec)
-    cols = rr.LineStrips3D.columns(strips=strips, colors=np.array(colors, np.uint8)).partition(lengths)
+    lut = np.array([CLASS_COLORS.get(c, (128, 128, 128)) for c in range(3)] + [(128, 128, 128)], np.uint8)
+    colors = lut[np.clip(np.asarray(classes, int), 0, 3)]
+    cols = rr.LineStrips3D.columns(strips=segments, colors=colors).partition(np.asarray(counts, int))
     rr.send_columns(path, indexes=_indexes(t, k), columns=cols, recording=rec)

@@ -435,27 +435,36 @@ def _write_rrd(path: Path, res0: dict, truth) -> None:
             R.send_series(R.error_path(a, "pos_3d", "swarm"), t, k, np.sqrt(np.nanmean(pe**2, axis=1)), rec)
             R.send_series(R.error_path(a, "vel_3d", "swarm"), t, k, np.sqrt(np.nanmean(ve**2, axis=1)), rec)
             if len(r.links):
-                idx = {int(u): j for j, u in enumerate(truth.uavs)}
-                lk = np.sort(r.links, order=["k", "observer", "other"])
-                bounds = np.searchsorted(lk["k"], np.arange(1, len(t) + 2))
-                per_epoch = []
-                for i in range(len(t)):
-                    seg = lk[bounds[i]:bounds[i + 1]]
-                    worst: dict[tuple[int, int], int] = {}
-                    for o, x, c in zip(seg["observer"].tolist(), seg["other"].tolist(), seg["cls"].tolist()):
-                        key = (min(o, x), max(o, x))
-                        worst[key] = min(c, worst.get(key, 2))
-                    segs, cls = [], []
-                    for (a1, b1), c in sorted(worst.items()):
-                        if a1 in idx and b1 in idx:
-                            p1, p2 = r.pos[i, idx[a1]], r.pos[i, idx[b1]]
-                            if np.all(np.isfinite(p1)) and np.all(np.isfinite(p2)):
-                                segs.append((p1, p2))
-                                cls.append(c)
-                    per_epoch.append((np.array(segs, float).reshape(-1, 2, 3), np.array(cls, int)))
-                R.send_links(a, t, k, per_epoch, rec)
+                R.send_links(a, t, k, *_link_segments(r, truth.uavs), rec=rec)
         R.set_epoch(0, float(truth.t[0]) - (truth.t[1] - truth.t[0] if len(truth.t) > 1 else 1.0), rec)
         R.log_event("evaluate", 0, 0.0, text=f"in-process evaluation of {', '.join(algos)} (seed "
                     f"{next(iter(res0.values())).seed if res0 else '-'}); no kills in-process", rec=rec, level="INFO")
     finally:
         R.close_recording(rec)
+
+
+def _link_segments(r, uavs):
+    """Per epoch, one segment per unordered pair between the two estimated positions, with the
+    worse of the two ends' classes. -> (segments (M,2,3), classes (M,), per-epoch counts (K,))."""
+    import numpy as np
+
+    K = len(r.t)
+    lk = r.links
+    o = lk["observer"].astype(np.int64)
+    x = lk["other"].astype(np.int64)
+    a, b = np.minimum(o, x), np.maximum(o, x)
+    M = int(max(b.max(), max(int(u) for u in uavs))) + 1
+    col = np.full(M, -1)
+    col[np.asarray(uavs, int)] = np.arange(len(uavs))
+    kk = lk["k"].astype(np.int64)
+    key = (kk * M + a) * M + b
+    order = np.lexsort((lk["cls"], key))  # by pair-epoch, then class: first of a group = worst
+    ks = key[order]
+    first = order[np.r_[True, ks[1:] != ks[:-1]]]
+    kk, a, b, cls = kk[first], a[first], b[first], lk["cls"][first].astype(int)
+    ok = (col[a] >= 0) & (col[b] >= 0)
+    kk, a, b, cls = kk[ok], a[ok], b[ok], cls[ok]
+    p1, p2 = r.pos[kk - 1, col[a]], r.pos[kk - 1, col[b]]
+    fin = np.all(np.isfinite(p1), axis=1) & np.all(np.isfinite(p2), axis=1)
+    segs = np.stack([p1[fin], p2[fin]], axis=1)
+    return segs, cls[fin], np.bincount(kk[fin] - 1, minlength=K)[:K]
