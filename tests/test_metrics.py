@@ -159,3 +159,30 @@ def test_link_labels_merge_rows_per_epoch():
     assert got[(1, 1, 2)] == 4.0  # two rows in (0, 1]: the larger |err|
     assert math.isnan(got[(1, 1, 3)])  # t = 1.0 belongs to epoch 1 ((0, 1])
     assert got[(2, 1, 2)] == 0.0
+
+
+def _block(x):
+    d = {a: x for a in ("e", "n", "u", "3d")}
+    return {"pos_rmse_m": d, "vel_rmse_mps": d, "uav1_pos_rmse_m": d, "per_uav_pos_rmse_m": {"1": x},
+            "nees": 3.0, "step_ms": {"p50": 1.0, "p99": 2.0}}
+
+
+def test_report_contract_and_improvement_keys():
+    from swarmnav.report import build_report, render_markdown, validate_report
+
+    kw = dict(mode="in-process", scenario="s", seeds=[1], n_uavs=1, duration_s=1.0, detection_single=None,
+              delta_l_m=0.3, delta_h_m={"p50": 1.0, "p95": 2.0},
+              provenance={"git": "abc", "config_sha256": "x", "packages": {}}, events=[])
+    det = {"precision": 1.0, "recall": 0.5, "false_alarm_rate": float("nan")}
+    rep = build_report(algorithms={"atvfg": _block(5.0), "fg": _block(10.0)}, detection=det, **kw)
+    assert validate_report(rep) == []
+    assert rep["improvement_pct"] == {"atvfg_vs_fg": 50.0}  # fkf did not run: no key
+    assert rep["algorithms"]["atvfg"]["detection"]["false_alarm_rate"] is None  # NaN -> null
+    assert "Table 2" in render_markdown(rep)
+    rep2 = build_report(algorithms={"fg": _block(10.0)}, detection=None, **kw)
+    assert rep2["improvement_pct"] == {} and validate_report(rep2) == []
+    bad = dict(rep)
+    bad.pop("thresholds")
+    del bad["algorithms"]["fg"]["nees"]
+    errs = validate_report(bad)
+    assert any("thresholds" in e for e in errs) and any("fg.nees" in e for e in errs)
