@@ -31,10 +31,14 @@ Epoch k (driven by ``swarmnav.protocol``):
 cooperative *mean* (so residuals and the neighbours' linearisation improve round by round) but the
 **local covariance P_loc**, the node's uncertainty *before* any cooperative information of the epoch
 — always ≥ its cooperative posterior, so a receiver never treats information it contributed itself
-in this epoch as independent. On top, receivers inflate that covariance by
-``neighbour_cov_inflation`` (default 1) — covariance-intersection-style conservatism for the
-information that went round through earlier epochs. Committing each epoch's cooperative summary
-only once (at ``end_epoch``) keeps the rounds from being re-counted.
+in this epoch as independent. On top, receivers inflate that covariance by the number of links the
+sender fused this epoch (``neighbour_cov_inflation`` = "links", or a number) — split covariance
+intersection: each of the sender's n links may carry information that is also in ours, and the
+cooperative information that went round through earlier epochs is not independent either. Each
+epoch's cooperative summary is committed once (at ``end_epoch``) and with information scaled by
+``commit_weight`` (default 0.3, a CI weight), since a neighbour's error persists over epochs while
+the smoother would treat every epoch's links as new independent information. Measured: paper
+0–200 s seed 1 NEES 2.7 (3 expected); without the inflation 4553.
 
 Choices: range timestamps inside the epoch are treated as at the epoch time; the node's own tag
 lever arm is applied with its current attitude, a neighbour's is ignored (its attitude is not
@@ -84,7 +88,8 @@ class GraphEstimator(NodeEstimator):
         self.floor_factor = float(s.get("delta_h_floor_factor", det.DEFAULT_FLOOR_FACTOR))
         self.kmeans_backend = str(s.get("kmeans_backend", "exact"))
         self.use_azel = bool(s.get("use_azel", True))
-        self.cov_infl = float(s.get("neighbour_cov_inflation", 1.0))
+        ci = s.get("neighbour_cov_inflation", "links")
+        self.cov_infl = None if ci == "links" else float(ci)  # None: per sender, its number of links
         self.gn_iters = int(s.get("gn_iterations", 2))
         self.window = det.ResidualWindow(int(s.get("residual_window_epochs", 1)))
         node = meta.node(uav)
@@ -181,6 +186,7 @@ class GraphEstimator(NodeEstimator):
         self._info = np.linalg.inv(self.P_loc)
         self._own_ranges(inp)
         self.peer_ranges: dict[tuple[int, int], float] = {}
+        self.peer_links: dict[int, int] = {}
         self.links: list[LinkInfo] = []
         self.Lam = None
         self.delta_h = None
@@ -241,6 +247,8 @@ class GraphEstimator(NodeEstimator):
             self._last_state = NodeState(self.uav, s.k, r, s.t, s.pos, s.pos_cov, s.vel, 0.0)
             return self._last_state
         for j, s in peers.items():
+            if s.ranges:
+                self.peer_links[j] = len(s.ranges)
             for o, d in s.ranges.items():
                 key = (min(j, o), max(j, o))
                 self.peer_ranges.setdefault(key, float(d))
@@ -293,12 +301,12 @@ class GraphEstimator(NodeEstimator):
             for i in self._rows[o]:
                 rows.append(i)
                 pj.append(s.pos)
-                Pj.append(s.pos_cov)
+                Pj.append(s.pos_cov * self._infl(o))
                 w.append(wo)
         L = {}
         if rows:
             rows = np.array(rows)
-            L["rng"] = (np.array(pj), np.array(Pj) * self.cov_infl, np.array(w),
+            L["rng"] = (np.array(pj), np.array(Pj), np.array(w),
                         np.array([self.tags.get(int(t), np.zeros(3)) for t in inp.range_tag_self[rows]]) @ Rm.T,
                         np.where(inp.range_sigma[rows] > 0, inp.range_sigma[rows], self.uwb_sigma) ** 2,
                         inp.range_m[rows])
@@ -307,10 +315,18 @@ class GraphEstimator(NodeEstimator):
             if idx:
                 tg = [int(inp.rel_target[i]) for i in idx]
                 st = np.array([inp.rel_sigma[i] if inp.rel_sigma[i] > 0 else self.rel_sigma for i in idx])
-                L["azel"] = (np.array([peers[o].pos for o in tg]), np.array([peers[o].pos_cov for o in tg]) * self.cov_infl,
+                L["azel"] = (np.array([peers[o].pos for o in tg]), np.array([peers[o].pos_cov * self._infl(o) for o in tg]),
                              np.array([self._weights.get(o, 1.0) for o in tg]), st ** 2,
                              np.column_stack([inp.rel_az[idx], inp.rel_el[idx]]))
         self._L = L
+
+    def _infl(self, o: int) -> float:
+        """Covariance inflation of neighbour o's broadcast (double-counting remedy): by default the
+        number of links o fused this epoch (its round-0 range count), as in split covariance
+        intersection — each of o's n links may carry information that is also in ours."""
+        if self.cov_infl is not None:
+            return self.cov_infl
+        return float(max(1, self.peer_links.get(o, 1)))
 
     def _normal_equations(self, p: np.ndarray, coop_only: bool = False):
         """Gauss-Newton normal equations (H, g) of prior + cooperative factors at own position p."""

@@ -1,0 +1,111 @@
+"""Graph estimators (atvfg / fg / ins): noiseless accuracy, fixed-lag vs batch, NEES on smoke."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+from gtsam.symbol_shorthand import X
+
+from swarmnav.config import load_config, parse_config
+from swarmnav.dataset import EpochSlicer
+from swarmnav.estimators.graph import AtvfgEstimator, FgEstimator, InsEstimator
+from swarmnav.initial import initial_states
+from swarmnav.protocol import node_epoch, run_epoch_in_process
+from swarmnav.sim import simulate
+
+CLASSES = {"atvfg": AtvfgEstimator, "fg": FgEstimator, "ins": InsEstimator}
+
+
+def _settings(sc, **kw):
+    s = sc.estimation.model_dump()
+    s["delta_l_m"] = None
+    s.update(kw)
+    return s
+
+
+def _run(ds, cls, seed, settings, k_max=None):
+    sl = EpochSlicer(ds)
+    uavs = ds.meta.uav_ids()
+    inits = initial_states(ds, seed)
+    nodes = {u: cls(u, ds.meta, settings, inits[u]) for u in uavs}
+    K = ds.meta.n_epochs() if k_max is None else k_max
+    tr = ds.table("truth")
+    err, nees = [], []
+    for k in range(1, K + 1):
+        out = run_epoch_in_process({u: node_epoch(nodes[u], sl.epoch(k, u), settings["rounds"], settings["convergence_m"])
+                                    for u in uavs})
+        t = ds.meta.epoch_time(k)
+        for u, e in out.items():
+            i = np.flatnonzero((tr["node"] == u) & (np.abs(tr["t"] - t) < 1e-6))[0]
+            d = e.pos - np.array([tr["pe"][i], tr["pn"][i], tr["pu"][i]])
+            err.append(d)
+            nees.append(float(d @ np.linalg.solve(e.pos_cov, d)))
+    return np.array(err), np.array(nees), nodes
+
+
+def _noiseless(duration=15.0):
+    d = load_config("configs/smoke.toml").model_dump()
+    d["scenario"]["duration_s"] = duration
+    for role in ("master", "slave"):
+        d["sensors"]["imu"][role] = {k: 0.0 for k in d["sensors"]["imu"][role]}
+        g = d["sensors"]["gnss"][role]
+        g["pos_sigma_m"], g["gm_sigma_m"], g["vel_sigma_mps"] = [0.01, 0.01, 0.01], 0.0, 0.001
+    d["sensors"]["uwb"].update(sigma_m=0.005, link_bias_sigma_m=0.0, packet_loss=0.0)
+    d["sensors"]["rel"]["sigma_deg"] = 0.01
+    d["faults"] = {}
+    d["init"] = {"vel_sigma_mps": 0.0, "roll_pitch_sigma_deg": 0.0, "yaw_sigma_deg": 0.0}
+    return parse_config(d)
+
+
+@pytest.fixture(scope="module")
+def noiseless():
+    sc = _noiseless()
+    return sc, simulate(sc, 3)
+
+
+@pytest.mark.parametrize("algo", ["atvfg", "fg", "ins"])
+def test_noiseless_smoke_near_zero_error(noiseless, algo):
+    sc, ds = noiseless
+    err, _, _ = _run(ds, CLASSES[algo], 3, _settings(sc))
+    rmse = float(np.sqrt(np.mean(np.sum(err ** 2, 1))))
+    assert rmse < 0.05, f"{algo}: noiseless RMSE {rmse:.4f} m"
+
+
+def test_fixed_lag_matches_batch_solve():
+    """The smoother's estimate equals a batch LM solve of the same factors (small problem)."""
+    sc = load_config("configs/smoke.toml")
+    d = sc.model_dump()
+    d["scenario"]["duration_s"] = 12.0
+    sc = parse_config(d)
+    ds = simulate(sc, 2)
+    for lag in (100.0, 4.0):  # no marginalisation / with marginalisation (linear container factors)
+        _, _, nodes = _run(ds, FgEstimator, 2, _settings(sc, fixed_lag_s=lag))
+        for est in nodes.values():
+            sm = est.smoother
+            graph = sm.getFactors()
+            lin = sm.getLinearizationPoint()
+            batch = gtsam.LevenbergMarquardtOptimizer(graph, lin).optimize()
+            for _ in range(5):  # ISAM2 does one relinearisation per update: iterate to convergence
+                sm.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
+            isam = sm.calculateEstimate()
+            p_b = batch.atPose3(X(est.n)).translation()
+            p_i = isam.atPose3(X(est.n)).translation()
+            assert np.linalg.norm(p_b - p_i) < 0.02, (lag, est.uav, p_b, p_i)
+
+
+def test_atvfg_nees_on_smoke():
+    """3-D position NEES of atvfg over three seeds of smoke.
+
+    Expected 3. Samples are strongly correlated in time (fixed-lag smoothing, persistent GNSS
+    Gauss-Markov error), so the chi-square bound for N independent samples is far too tight; we
+    hold the mean to [1, 9] (a factor 3 either side) and report the value in docs/estimators.md.
+    """
+    sc = load_config("configs/smoke.toml")
+    vals = []
+    for seed in (1, 2, 3):
+        ds = simulate(sc, seed)
+        _, nees, _ = _run(ds, AtvfgEstimator, seed, _settings(sc))
+        vals.append(nees)
+    m = float(np.mean(np.concatenate(vals)))
+    assert 1.0 <= m <= 9.0, f"mean NEES {m:.2f}"
