@@ -24,7 +24,7 @@ def add_arguments(p) -> None:
     p.add_argument("--out", required=True, metavar="FILE", help="JSON file to write (e.g. configs/delta_l.json)")
     p.add_argument("--seed", type=int, default=None, metavar="N", help="seed (default: the config's)")
     p.add_argument("--warmup-s", type=float, default=20.0, help="seconds skipped before collecting residuals")
-    p.add_argument("--window-s", type=float, default=100.0, help="seconds of residuals collected")
+    p.add_argument("--window-s", type=float, default=60.0, help="seconds of residuals collected")
 
 
 def run(args) -> int:

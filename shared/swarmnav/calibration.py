@@ -23,7 +23,7 @@ def fallback_delta_l(uwb_sigma_m: float, fallback_sigmas: float) -> float:
     return float(fallback_sigmas) * float(uwb_sigma_m)
 
 
-def train_delta_l(ds: Dataset, seed: int, settings: dict, warmup_s: float = 20.0, window_s: float = 100.0,
+def train_delta_l(ds: Dataset, seed: int, settings: dict, warmup_s: float = 20.0, window_s: float = 60.0,
                   rounds: int = ROUNDS, percentile: float = PERCENTILE) -> dict:
     """Δl from converged fault-free ``fg`` residuals (module docstring). Returns a JSON-able dict."""
     from .estimators.graph import FgEstimator
