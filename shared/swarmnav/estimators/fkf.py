@@ -129,6 +129,14 @@ class FkfEstimator(NodeEstimator):
         if self.nb_fusion not in ("ci", "independent"):
             raise ValueError(f"fkf_neighbour_fusion must be 'ci' or 'independent', not {self.nb_fusion!r}")
         self._omegas = np.linspace(0.05, 0.95, 19)
+        # neighbour errors are correlated with EACH OTHER (they all carry the swarm's common-mode
+        # error, which ranges cannot see): "split" = split covariance intersection over the N
+        # neighbours (each neighbour's position variance along the line of sight × N, consistent
+        # for any cross-correlation); "none" = independent (the old behaviour: NEES ~10⁴ on
+        # paper_faultfree 100 s, then the chi-square test rejected every range).
+        self.nb_corr = str(s.get("fkf_neighbour_corr", "split"))
+        if self.nb_corr not in ("split", "none"):
+            raise ValueError(f"fkf_neighbour_corr must be 'split' or 'none', not {self.nb_corr!r}")
         self.anchors = meta.anchors()
         self.tags_self = {k: np.asarray(v, float) for k, v in node.tags.items()}
         self.tags_all = {n.id: {k: np.asarray(v, float) for k, v in n.tags.items()} for n in meta.nodes}
@@ -214,7 +222,7 @@ class FkfEstimator(NodeEstimator):
         p = self.nav.position() + x_lin[POS]
         v = self.nav.velocity() + x_lin[VEL]
         Pu = self.P / self.beta_u
-        rows, res, var, links = [], [], [], []
+        rows, res, var, links, wrows = [], [], [], [], []
         scale = self.nb_cov_scale
         for j in range(len(inp.range_m)):
             other = int(inp.range_other[j])
@@ -243,6 +251,7 @@ class FkfEstimator(NodeEstimator):
             h[ATT] = -u @ R @ _skew(lever)
             sig = float(inp.range_sigma[j]) if np.isfinite(inp.range_sigma[j]) and inp.range_sigma[j] > 0 else self.meta.uwb_sigma_m
             rv = sig**2 + float(u @ Pb @ u)
+            wrows.append(float(u @ Pb @ u))
             # innovation of the (iterated) linearisation: z - h(x_lin) + H x_lin, prior mean 0
             innov = z - rng
             rr = innov + float(h @ x_lin)
@@ -253,6 +262,15 @@ class FkfEstimator(NodeEstimator):
         if not rows:
             return None, []
         H, r, Rv = np.array(rows), np.array(res), np.array(var)
+        q = np.array(wrows)  # neighbour position variance along each line of sight (0 for anchors)
+        n_nb = int(np.count_nonzero(q))
+        if self.nb_corr == "split" and n_nb > 1:
+            # neighbours' errors are mutually correlated by an unknown amount: split-CI bound
+            # cov([e_1..e_N]) <= blockdiag(N·P_j) for ANY correlation, i.e. information-sharing
+            # factor 1/N per neighbour; then CI of the whole UWB part with the local part (_fuse)
+            Rv = Rv + (n_nb - 1) * q
+            for m in range(len(links)):
+                links[m][2] += (n_nb - 1) * q[m]
         keep = np.ones(len(r), bool)
         flags = []
         if self.isolation == "measurement":
@@ -260,9 +278,10 @@ class FkfEstimator(NodeEstimator):
             for m, (other, innov, s) in enumerate(links):
                 if innov * innov / s > thr1:
                     keep[m] = False
+        Rfull = np.diag(Rv)
         if keep.any():
             Hk, rk = H[keep], r[keep] - H[keep] @ x_lin  # innovation about the prior (x = 0)
-            S = Hk @ Pu @ Hk.T + np.diag(Rv[keep])
+            S = Hk @ Pu @ Hk.T + Rfull[np.ix_(keep, keep)]
             nis = float(rk @ np.linalg.solve(S, rk))
             self._uwb_nis = nis
             if nis > self._chi2(int(keep.sum())):
@@ -273,8 +292,8 @@ class FkfEstimator(NodeEstimator):
                                   abs(innov), 1.0 if keep[m] else 0.0))
         if not keep.any():
             return None, flags
-        Hk, rk, Rk = H[keep], r[keep], Rv[keep]
-        Hw = Hk / Rk[:, None]
+        Hk, rk, Rk = H[keep], r[keep], Rfull[np.ix_(keep, keep)]
+        Hw = np.linalg.solve(Rk, Hk)  # R⁻¹H
         return (Hk.T @ Hw, Hw.T @ rk), flags
 
     def _fuse(self, g: tuple[np.ndarray, np.ndarray] | None,
