@@ -12,6 +12,7 @@ explicitly (a declared subscriber left open hangs interpreter exit).
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import signal
 import sys
@@ -57,6 +58,33 @@ class Inbox:
 
     def wake(self) -> None:
         self.q.put(("_wake", None))
+
+    def join(self, timeout: float = 5.0) -> list[str]:
+        """Wait for the pump threads to end (call after the session is closed: closing drops the
+        channels' senders, so every ``recv()`` returns). Returns the names of threads still alive.
+
+        Needed because CPython <= 3.13 ends a daemon thread that is still inside ``recv()`` at
+        interpreter exit with ``pthread_exit``; unwinding that through zenoh's Rust frames aborts
+        the process ("FATAL: exception not rethrown", exit -6) after the work is done."""
+        self.stop.set()
+        end = time.monotonic() + timeout
+        for th in self._threads:
+            th.join(max(0.0, end - time.monotonic()))
+        return [th.name for th in self._threads if th.is_alive()]
+
+
+def finish_process(inbox: Inbox, log: logging.Logger, rc: int) -> int:
+    """End a service after its session is closed: join the pump threads; if one is still stuck
+    in a Zenoh call, leave with ``os._exit`` (files are closed by then) instead of letting the
+    interpreter's finalisation abort the process."""
+    stuck = inbox.join()
+    if stuck:
+        log.warning("pump threads still blocked after close: %s; exiting without finalisation", stuck)
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(rc)
+    return rc
 
 
 def install_signals(inbox: Inbox) -> None:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deploy.service import Inbox, install_signals, setup_logging
+from deploy.service import Inbox, finish_process, install_signals, setup_logging
 from deploy.zconf import client_config
 from swarmnav.dataset import Dataset
 from swarmnav.estimators import registry
@@ -263,4 +263,4 @@ def main(argv=None) -> int:
                 except Exception:
                     pass
             mon.finish()
-    return 0
+    return finish_process(mon.inbox, log, 0)

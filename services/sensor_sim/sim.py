@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from deploy.service import Deadline, Inbox, install_signals, setup_logging
+from deploy.service import Deadline, Inbox, finish_process, install_signals, setup_logging
 from deploy.zconf import client_config
 from swarmnav.dataset import Dataset, EpochSlicer
 from swarmnav.evaluation import truth_at_epochs
@@ -241,6 +241,7 @@ def main(argv=None) -> int:
     log = setup_logging("sensor_sim")
     import zenoh
 
+    sim = None
     with zenoh.open(client_config(args.router, args.zenoh_config)) as session:
         sim = SensorSim(args, session, log)
         install_signals(sim.inbox)
@@ -257,4 +258,4 @@ def main(argv=None) -> int:
                     s.undeclare()
                 except Exception:
                     pass
-    return rc
+    return finish_process(sim.inbox, log, rc) if sim is not None else rc

@@ -21,7 +21,7 @@ import os
 import time
 from collections import deque
 
-from deploy.service import Deadline, Inbox, install_signals, setup_logging
+from deploy.service import Deadline, Inbox, finish_process, install_signals, setup_logging
 from deploy.zconf import client_config
 from swarmnav.dataset import DatasetMeta
 from swarmnav.estimators import registry
@@ -335,4 +335,4 @@ def main(argv=None) -> int:
                     s.undeclare()
                 except Exception:
                     pass
-    return rc
+    return finish_process(node.inbox, log, rc) if node is not None else rc
