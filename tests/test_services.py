@@ -1,16 +1,28 @@
 """Multi-process integration on `smoke`: real embedded router on loopback, real processes, no mocks.
 
-One distributed run (with garbage injected on every key the nodes listen to) must equal the
-in-process evaluation (tolerance 1e-6 m absolute on every position estimate, observed ~1e-12);
-the recording must read back; a kill/restart run must record the dropout and rejoin, keep every
-other node estimating every epoch and bring the restarted node's error back; nothing may be left.
+Two launches (module fixtures, ~10 s each on 2 cores):
+
+* ``base``: a distributed lockstep run with garbage injected at epoch 3 on every key the nodes
+  listen to. It must equal the in-process evaluation of the same checkout, dataset and seed:
+  tolerance 1e-6 m / 1e-6 m/s absolute on every position / velocity estimate of every UAV and
+  epoch (observed: bit-identical, 0.0). Every garbage message is rejected and counted by every
+  node. The monitor's recording reads back with ``rerun.chunk.RrdReader`` with the expected
+  entities and one row per epoch.
+* ``drop``: UAV 2 SIGKILLed at t=15 s and restarted at t=25 s. Every other node estimates every
+  epoch without stalling, nobody uses UAV 2's states while it is gone, the monitor records the
+  dropout and the rejoin, the restarted node bootstraps from its peers by query and its error
+  comes back.
+
+Both launches must exit 0 in every process (no hang, no abort at exit) and leave no process behind.
 """
 
+import ast
 import json
 import os
 import re
 import subprocess
 import sys
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +32,8 @@ pytestmark = [pytest.mark.integration]
 REPO = Path(__file__).resolve().parents[1]
 SWARMNAV = [sys.executable, "-m", "services.cli"]
 ALGO = "atvfg"
+KILL_T, RESTART_T = 15.0, 25.0
+PEER_TIMEOUT_S = 2.0  # estimation.peer_timeout_s default
 
 
 @pytest.fixture(scope="module")
@@ -32,66 +46,142 @@ def smoke(tmp_path_factory):
     return d
 
 
-def _launch(dataset, out, *extra):
-    env = dict(os.environ, PYTHONPATH=f"{REPO}:{REPO / 'shared'}")
-    r = subprocess.run([*SWARMNAV, "launch", "--dataset", str(dataset), "--algo", ALGO, "--seed", "1", "--out", str(out),
-                        "--no-progress", *extra], cwd=REPO, env=env, capture_output=True, text=True, timeout=150)
-    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
-    return json.loads((out / "report.json").read_text()), np.load(out / "estimates.npz")
-
-
 def _leftovers(path) -> list[str]:
     r = subprocess.run(["pgrep", "-af", str(path)], capture_output=True, text=True)
     return [ln for ln in r.stdout.splitlines() if "pgrep" not in ln]
 
 
-def test_distributed_equals_in_process_with_garbage(smoke, tmp_path):
+def _launch(dataset, out, *extra):
+    env = dict(os.environ, PYTHONPATH=f"{REPO}:{REPO / 'shared'}")
+    r = subprocess.run([*SWARMNAV, "launch", "--dataset", str(dataset), "--algo", ALGO, "--seed", "1", "--out", str(out),
+                        "--no-progress", *extra], cwd=REPO, env=env, capture_output=True, text=True, timeout=150)
+    left = _leftovers(out)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    rep = json.loads((out / "report.json").read_text())
+    return {"rep": rep, "est": np.load(out / "estimates.npz"), "dir": out, "left": left}
+
+
+@pytest.fixture(scope="module")
+def base(smoke, tmp_path_factory):
+    return _launch(smoke, tmp_path_factory.mktemp("base") / "run", "--garbage-at", "3")
+
+
+@pytest.fixture(scope="module")
+def drop(smoke, tmp_path_factory):
+    return _launch(smoke, tmp_path_factory.mktemp("drop") / "run", "--kill", f"2@{KILL_T:g}", "--restart", f"2@{RESTART_T:g}")
+
+
+@pytest.fixture(scope="module")
+def truth(smoke):
+    from swarmnav.dataset import Dataset
+    from swarmnav.evaluation import truth_at_epochs
+
+    return truth_at_epochs(Dataset.read(smoke))
+
+
+def _clean_exit(run):
+    """Every process exited 0 (a hang would have been killed: non-zero), none aborted, none left."""
+    procs = run["rep"]["distributed"]["processes"]
+    assert all(p["exit"] == 0 for p in procs.values()), procs
+    for log in (run["dir"] / "logs").glob("*.log"):
+        text = log.read_text()
+        assert "FATAL" not in text and "Traceback" not in text, (log.name, text[-1500:])
+    assert not run["left"], run["left"]
+
+
+def test_distributed_equals_in_process_with_garbage(smoke, base):
     from swarmnav.dataset import Dataset
     from swarmnav.estimators import registry
     from swarmnav.evaluation import run_algorithm
 
     ds = Dataset.read(smoke)
     ref = run_algorithm(ds, ALGO, 1, registry.settings_for_dataset(ds.meta))
-    rep, est = _launch(smoke, tmp_path / "run", "--garbage-at", "3")
+    rep, est = base["rep"], base["est"]
     assert rep["mode"] == "distributed" and rep["events"] == []
     assert np.isfinite(est["pos"]).all()
     np.testing.assert_allclose(est["pos"], ref.pos, rtol=0, atol=1e-6)
     np.testing.assert_allclose(est["vel"], ref.vel, rtol=0, atol=1e-6)
-    # every garbage message was rejected and counted by every node: 5 sensor keys + 4 peer states + clock
+    # every node used every peer in every epoch (no peer was ever timed out)
+    n = len(ds.meta.uav_ids())
+    assert est["peers"].sum(axis=2).min() == n - 1
+    # the garbage did not change the result (above) and every node rejected and counted each
+    # message: 5 own sensor keys (imu, gnss, uwb, rel, epoch) + 4 peer states + the clock = 10
     for u in ds.meta.uav_ids():
-        log = (tmp_path / "run" / "logs" / f"uav{u}.log").read_text()
-        m = re.search(r"exiting after epoch 60; rejected messages: (\d+)", log)
+        log = (base["dir"] / "logs" / f"uav{u}.log").read_text()
+        m = re.search(rf"exiting after epoch {ds.meta.n_epochs()}; rejected messages: (\d+) (\{{.*\}})", log)
         assert m and int(m.group(1)) == 10, log[-1500:]
-    # the recording is a valid, complete .rrd with the entities we logged
-    rrd = tmp_path / "run" / "swarm.rrd"
-    subprocess.run([str(Path(sys.executable).parent / "rerun"), "rrd", "verify", str(rrd)], check=True, capture_output=True)
+        counts = ast.literal_eval(m.group(2))  # {"topic:reason": n}
+        for topic in ("imu", "gnss", "uwb", "rel", "epoch", "state", "clock"):
+            assert any(k.startswith(topic + ":") for k in counts), (topic, counts)
+    _clean_exit(base)
+
+
+def test_recording_reads_back(smoke, base):
     import rerun as rr
+    from swarmnav.dataset import Dataset
 
-    paths = set()
+    meta = Dataset.read(smoke).meta
+    K, uavs = meta.n_epochs(), meta.uav_ids()
+    rrd = base["dir"] / "swarm.rrd"
+    subprocess.run([str(Path(sys.executable).parent / "rerun"), "rrd", "verify", str(rrd)], check=True, capture_output=True)
+    rows: Counter = Counter()
     for chunk in rr.chunk.RrdReader(str(rrd)).stream().to_chunks():
-        paths.add(str(chunk.entity_path))
-    assert {f"/swarm/{ALGO}/uav1", "/swarm/truth/uav1", f"/links/{ALGO}", f"/errors/{ALGO}/pos_3d/swarm"} <= paths, paths
-    assert not _leftovers(tmp_path)
+        if not chunk.is_static:
+            rows[str(chunk.entity_path)] += chunk.num_rows
+    for u in uavs:  # one estimate and one truth position per UAV per epoch
+        assert rows[f"/swarm/{ALGO}/uav{u}"] == K, rows
+        assert rows[f"/swarm/truth/uav{u}"] == K, rows
+    assert rows[f"/links/{ALGO}"] == K, rows
+    for series in ("pos_3d/swarm", "vel_3d/swarm", "pos_3d/uav1"):
+        assert rows[f"/errors/{ALGO}/{series}"] == K, (series, rows)
+    assert rows["/events"] == 0, rows
 
 
-def test_dropout_and_rejoin(smoke, tmp_path):
-    base = np.load(tmp_path.parent / "test_distributed_equals_in_p0" / "run" / "estimates.npz") \
-        if (tmp_path.parent / "test_distributed_equals_in_p0").exists() else None
-    rep, est = _launch(smoke, tmp_path / "drop", "--kill", "2@15", "--restart", "2@25")
+def test_dropout_and_rejoin(smoke, drop, truth):
+    rep, est = drop["rep"], drop["est"]
     ev = [e for e in rep["events"] if e["uav"] == 2]
-    assert [e["kind"] for e in ev] == ["dropout", "rejoin"] and ev[0]["t"] == 15.0 and ev[1]["t"] == 25.0
+    assert [e["kind"] for e in ev] == ["dropout", "rejoin"] and ev[0]["t"] == KILL_T and ev[1]["t"] == RESTART_T, ev
     pos, t = est["pos"], est["t"]
     uavs = list(est["uavs"])
     j = uavs.index(2)
     others = [i for i in range(len(uavs)) if i != j]
+    # every other node produced an estimate every epoch, without waiting out a peer timeout
     assert np.isfinite(pos[:, others]).all(), "another node missed an epoch"
-    gone = (t > 15) & (t < 25)
-    assert not np.isfinite(pos[gone, j]).any() and np.isfinite(pos[t >= 25, j]).all()
-    from swarmnav.dataset import Dataset
-    from swarmnav.evaluation import truth_at_epochs
+    assert np.nanmax(est["wait_ms"][:, others]) < PEER_TIMEOUT_S * 1e3, np.nanmax(est["wait_ms"][:, others])
+    gone = (t >= KILL_T) & (t < RESTART_T)
+    assert not np.isfinite(pos[gone, j]).any() and np.isfinite(pos[t >= RESTART_T, j]).all()
+    # the lost peer is out of every other node's graph from the first epoch after the kill, and back after the rejoin
+    peers = est["peers"]
+    k_kill = int(np.argmax(t >= KILL_T))
+    assert peers[k_kill - 1, others, j].all() and not peers[gone][:, others, j].any()
+    assert peers[t >= RESTART_T + 1][:, others, j].all()
+    # the restarted node bootstrapped from its peers' states, queried over Zenoh
+    log = (drop["dir"] / "logs" / "uav2.log").read_text()
+    m = re.search(r"rejoin True.*?bootstrapping at epoch (\d+) from peers \[([\d, ]+)\]", log, re.S)
+    assert m and int(m.group(1)) == int(np.argmax(t >= RESTART_T)) + 1, log[-1500:]
+    assert sorted(map(int, m.group(2).split(","))) == [u for u in uavs if u != 2]
+    # and its error comes down (it restarts from a coarse alignment)
+    err = np.linalg.norm(pos[:, j] - truth.pos[:, j], axis=1)
+    back = t >= RESTART_T
+    assert err[back][-1] < 0.5 * err[back][0] and err[back][-1] < 5.0, err[back]
+    rows = Counter()
+    import rerun as rr
 
-    tr = truth_at_epochs(Dataset.read(smoke))
-    err = np.linalg.norm(pos[:, j] - tr.pos[:, j], axis=1)
-    normal = np.nanmedian(err[t < 15])
-    assert np.nanmedian(err[(t >= 35) & (t <= 55)]) < max(3 * normal, 5.0), (normal, err)
-    assert not _leftovers(tmp_path)
+    for chunk in rr.chunk.RrdReader(str(drop["dir"] / "swarm.rrd")).stream().to_chunks():
+        if not chunk.is_static:
+            rows[str(chunk.entity_path)] += chunk.num_rows
+    assert rows["/events"] == 2 and rows[f"/swarm/{ALGO}/uav2"] == int((~gone).sum()), rows
+    _clean_exit(drop)
+
+
+@pytest.mark.xfail(reason="estimator (graph.py) bootstrap places the GNSS fix of t_k at t_(k-1): the restarted node "
+                          "starts one epoch of motion ahead (~13 m on smoke) and is still ~1.7 m off (normal ~0.4 m) "
+                          "30 epochs later", strict=False)
+def test_rejoined_error_normal_within_30_epochs(base, drop, truth):
+    t = drop["est"]["t"]
+    j = list(drop["est"]["uavs"]).index(2)
+    after = t >= RESTART_T + 30 * (t[1] - t[0])
+    assert after.any()
+    e_drop = np.linalg.norm(drop["est"]["pos"][after, j] - truth.pos[after, j], axis=1)
+    e_base = np.linalg.norm(base["est"]["pos"][after, j] - truth.pos[after, j], axis=1)
+    assert e_drop.mean() <= 1.5 * e_base.mean() + 0.3, (e_drop, e_base)

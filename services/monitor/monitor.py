@@ -55,6 +55,8 @@ class Monitor:
         self.res = RunResult.empty(args.algo, args.seed, self.uavs, self.truth.t)
         self.links: list[tuple] = []
         self.extra = {"wait_ms": np.full((self.K, len(self.uavs)), np.nan), "bytes": np.full((self.K, len(self.uavs)), np.nan)}
+        # peers[k-1, j, l]: UAV j's estimate of epoch k used UAV l's states (who is in whose graph)
+        self.peers = np.zeros((self.K, len(self.uavs), len(self.uavs)), bool)
         self.inbox = Inbox()
         self.rejects = M.Rejects(log)
         self.events: list[dict] = []
@@ -154,6 +156,9 @@ class Monitor:
             self.links.append((m.k, m.uav, int(li.other), int(li.cls), float(li.residual_m), float(li.weight)))
         self.extra["wait_ms"][i, j] = m.wait_ms
         self.extra["bytes"][i, j] = m.bytes_out
+        for p in m.peers:
+            if p in self.uavs:
+                self.peers[i, j, self.uavs.index(p)] = True
         self.positions.setdefault(m.k, {})[m.uav] = e.pos
         R, a = self.R, self.a.algo
         R.set_epoch(m.k, m.t, rec=self.rec)
@@ -230,7 +235,7 @@ class Monitor:
             self.log.error("report.json does not meet the contract: %s", probs)
         (self.out / "report.json").write_text(json.dumps(rep, indent=1) + "\n")
         np.savez_compressed(self.out / "estimates.npz", t=r.t, uavs=r.uavs, pos=r.pos, vel=r.vel, pos_cov=r.pos_cov,
-                            rounds=r.rounds, step_ms=r.step_ms, wait_ms=w, bytes_out=b)
+                            rounds=r.rounds, step_ms=r.step_ms, wait_ms=w, bytes_out=b, peers=self.peers)
         (self.out / "report.md").write_text(render_markdown(rep))
         return rep
 

@@ -280,7 +280,11 @@ class Node:
 
     def bootstrap_peers(self):
         peers = {}
-        for rep in self.s.get(keys.uav_all(self.run, "state"), timeout=2.0):
+        import zenoh
+
+        # REMOTE only: our own state queryable is declared but cannot answer while we block here,
+        # and a local match would make the get wait for its full timeout (others wait for us)
+        for rep in self.s.get(keys.uav_all(self.run, "state"), timeout=2.0, allowed_destination=zenoh.Locality.REMOTE):
             if rep.ok is None:
                 continue
             try:
