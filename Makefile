@@ -31,8 +31,13 @@ dropout: setup   ## configs/dropout.toml: UAV 7 killed at 400 s, restarted at 60
 evaluate: setup  ## in-process evaluation of all algorithms on CONFIG
 	$(BIN)/swarmnav evaluate --config $(CONFIG) --algos atvfg,fg,fkf,ins,central --seeds $(SEED)
 
-view: setup      ## open the latest recording in the Rerun viewer
-	$(BIN)/rerun runs/latest/*.rrd
+view: setup      ## open the latest recording in the Rerun viewer (prints the command when there is no display)
+	@f=$$(ls runs/latest/*.rrd 2>/dev/null | head -1); \
+	if [ -z "$$f" ]; then echo "no recording in runs/latest/ yet: run 'make run' first"; exit 1; fi; \
+	if [ -n "$${DISPLAY:-}$${WAYLAND_DISPLAY:-}" ]; then $(BIN)/rerun "$$f"; \
+	else echo "no display here; open the recording on a machine with one:"; \
+	     echo "  $(CURDIR)/$(BIN)/rerun $$(readlink -f $$f)"; \
+	     echo "or serve it to a browser: $(CURDIR)/$(BIN)/rerun --web-viewer $$(readlink -f $$f)"; fi
 
 test: setup      ## the whole test suite
 	$(BIN)/python -m pytest -q

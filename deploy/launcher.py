@@ -103,13 +103,18 @@ def launch(spec: LaunchSpec) -> tuple[int, dict]:
     logs = spec.run_dir / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     py = sys.executable
+    prof = os.environ.get("SWARMNAV_PROFILE")  # dev hook: cProfile every service into <run>/logs/<name>.prof
+
+    def pyrun(name: str) -> list[str]:
+        return [py, "-m", "cProfile", "-o", str(logs / f"{name}.prof")] if prof else [py]
+
     common = ["--router", router, "--run", run_id]
-    mon = Proc("monitor", [py, "-m", "services.monitor", *common, "--dataset", str(spec.dataset), "--seed", str(spec.seed),
+    mon = Proc("monitor", [*pyrun("monitor"), "-m", "services.monitor", *common, "--dataset", str(spec.dataset), "--seed", str(spec.seed),
                            "--algo", spec.algo, "--out", str(spec.run_dir)]
                + (["--config-sha256", spec.config_sha256] if spec.config_sha256 else []), logs / "monitor.log")
-    nodes = {u: Proc(f"uav{u}", [py, "-m", "services.uav_node", *common, "--uav", str(u), "--algo", spec.algo],
+    nodes = {u: Proc(f"uav{u}", [*pyrun(f"uav{u}"), "-m", "services.uav_node", *common, "--uav", str(u), "--algo", spec.algo],
                      logs / f"uav{u}.log") for u in spec.uavs}
-    sim_argv = [py, "-m", "services.sensor_sim", *common, "--dataset", str(spec.dataset), "--seed", str(spec.seed)]
+    sim_argv = [*pyrun("sensor_sim"), "-m", "services.sensor_sim", *common, "--dataset", str(spec.dataset), "--seed", str(spec.seed)]
     for u, t in spec.kills:
         sim_argv += ["--kill", f"{u}@{t}"]
     for u, t in spec.restarts:

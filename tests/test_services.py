@@ -185,3 +185,41 @@ def test_rejoined_error_normal_within_30_epochs(base, drop, truth):
     e_drop = np.linalg.norm(drop["est"]["pos"][after, j] - truth.pos[after, j], axis=1)
     e_base = np.linalg.norm(base["est"]["pos"][after, j] - truth.pos[after, j], axis=1)
     assert e_drop.mean() <= 1.5 * e_base.mean() + 0.3, (e_drop, e_base)
+
+
+def test_multi_host_config_files_router_and_client(tmp_path):
+    """deploy/zenoh-router.json5 + `python -m deploy.router` and deploy/zenoh-client.json5 + client_config
+    (what a node on another host uses) connect, route a sample, and the router exits 0 on SIGTERM."""
+    import signal
+    import time
+
+    import zenoh
+
+    from deploy.zconf import client_config, free_port
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    env = dict(os.environ, PYTHONPATH=f"{REPO}:{REPO / 'shared'}")
+    log = open(tmp_path / "router.log", "w")
+    r = subprocess.Popen([sys.executable, "-m", "deploy.router", "--config", str(REPO / "deploy/zenoh-router.json5"),
+                          "--listen", ep, "--tag", str(tmp_path)], cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        cfg = str(REPO / "deploy/zenoh-client.json5")
+        with zenoh.open(client_config(ep, cfg)) as a, zenoh.open(client_config(ep, cfg)) as b:
+            for _ in range(100):
+                if a.info.routers_zid() and b.info.routers_zid():
+                    break
+                time.sleep(0.1)
+            assert a.info.routers_zid() and b.info.routers_zid(), "client did not reach the router"
+            sub = b.declare_subscriber("swarmnav/t/uav/1/state", zenoh.handlers.FifoChannel(10))
+            time.sleep(0.3)
+            a.put("swarmnav/t/uav/1/state", b"x")
+            s = sub.recv()
+            assert s.payload.to_bytes() == b"x"
+            sub.undeclare()
+    finally:
+        r.send_signal(signal.SIGTERM)
+        rc = r.wait(timeout=10)
+        log.close()
+    assert rc == 0, (tmp_path / "router.log").read_text()
+    assert "listening on" in (tmp_path / "router.log").read_text()
+    assert not _leftovers(tmp_path)
