@@ -27,18 +27,15 @@ Epoch k (driven by ``swarmnav.protocol``):
     (P_loc⁻¹ + Λ)⁻¹, link classes and the thresholds.
 
 **Double counting.** A neighbour's estimate already contains this node's information. Remedy
-(documented in docs/estimators.md, checked with NEES): every broadcast carries the round's
-cooperative *mean* (so residuals and the neighbours' linearisation improve round by round) but the
-**local covariance P_loc**, the node's uncertainty *before* any cooperative information of the epoch
-— always ≥ its cooperative posterior, so a receiver never treats information it contributed itself
-in this epoch as independent. On top, receivers inflate that covariance by the number of links the
-sender fused this epoch (``neighbour_cov_inflation`` = "links", or a number) — split covariance
-intersection: each of the sender's n links may carry information that is also in ours, and the
-cooperative information that went round through earlier epochs is not independent either. Each
-epoch's cooperative summary is committed once (at ``end_epoch``) and with information scaled by
-``commit_weight`` (default 0.3, a CI weight), since a neighbour's error persists over epochs while
-the smoother would treat every epoch's links as new independent information. Measured: paper
-0–200 s seed 1 NEES 2.7 (3 expected); without the inflation 4553.
+(opt-in ``broadcast_cov = "own"``, documented and measured in docs/estimators.md; the default is
+still ``"local"`` because "own" is not yet validated over the full paper scenario): every node runs
+a second, own-sensor-only smoother (same own factors, never a cooperative one); broadcasts carry
+the cooperative *mean* (good residuals, good linearisation) but the **own-only covariance P_own**,
+so a receiver credits a neighbour only with information from that neighbour's own sensors — a
+master (own 0.5 m GNSS) is trusted nearly fully, a slave (own 5 m) hardly at all: the inflation
+scales with how much of the sender's information is cooperative. Each epoch's cooperative summary
+is committed once with information × ``commit_weight`` (default 1.0). The former scheme
+(``broadcast_cov = "local"``: P_loc × the sender's number of links, commit 0.3) remains available.
 
 Choices: range timestamps inside the epoch are treated as at the epoch time; the node's own tag
 lever arm is applied with its current attitude, a neighbour's is ignored (its attitude is not
@@ -88,9 +85,15 @@ class GraphEstimator(NodeEstimator):
         self.floor_factor = float(s.get("delta_h_floor_factor", det.DEFAULT_FLOOR_FACTOR))
         self.kmeans_backend = str(s.get("kmeans_backend", "exact"))
         self.use_azel = bool(s.get("use_azel", True))
-        ci = s.get("neighbour_cov_inflation", "links")
+        # what a broadcast's covariance is: "own" = the node's own-sensor-only marginal (a second,
+        # non-cooperative smoother), "local" = the cooperative smoother's marginal before this
+        # epoch's cooperative information (the former default). See "Double counting" above.
+        self.bcast_cov = str(s.get("broadcast_cov", "local"))
+        ci = s.get("neighbour_cov_inflation", 1.0 if self.bcast_cov == "own" else "links")
         self.cov_infl = None if ci == "links" else float(ci)  # None: per sender, its number of links
         self.gn_iters = int(s.get("gn_iterations", 2))
+        self.sticky = bool(s.get("sticky_detection", False))
+        self.eq24_on = str(s.get("eq24_applies_to", "squared"))  # "residual" (eq. 25) | "squared"
         self.window = det.ResidualWindow(int(s.get("residual_window_epochs", 1)))
         node = meta.node(uav)
         self.tags = {int(k): np.asarray(v, float) for k, v in node.tags.items()}
@@ -106,6 +109,11 @@ class GraphEstimator(NodeEstimator):
         self.gnss_extra_var = float((settings or {}).get("gnss_extra_var_m2", 0.0))
         self.commit_weight = float((settings or {}).get("commit_weight", 0.3))
         self.gnss_scale = float((settings or {}).get("gnss_sigma_scale", 2.5))
+        # per-role override (e.g. masters' receivers have no time-correlated error to cover)
+        role_scale = ((settings or {}).get("gnss_sigma_scale_by_role", {}) or {}).get(str(meta.node(uav).role))
+        if role_scale is not None:
+            self.gnss_scale = float(role_scale)
+        self.own_cov_scale = float((settings or {}).get("own_cov_scale", 1.0))
         imu = node.imu
         self.bias_sigmas = np.r_[[max(imu.accel_bias_sigma, 1e-4)] * 3, [max(imu.gyro_bias_sigma, 1e-6)] * 3]
         self._reset(init.t, init.pos, init.vel, init.quat, np.asarray(init.pos_sigma, float),
@@ -113,37 +121,49 @@ class GraphEstimator(NodeEstimator):
 
     # -- set-up ------------------------------------------------------------------------------
 
-    def _reset(self, t, pos, vel, quat, pos_sigma, vel_sigma, att_sigma):
+    def _new_smoother(self, t, pose, vel, pos_sigma, vel_sigma, att_sigma):
         p = gtsam.ISAM2Params()
         p.setRelinearizeThreshold(0.05)
         p.relinearizeSkip = 1
         p.setFactorization("QR")
-        self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag, p)
+        sm = gtsam.IncrementalFixedLagSmoother(self.lag, p)
+        Rm = pose.rotation().matrix()
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = np.diag(np.maximum(att_sigma, 1e-4) ** 2)
+        cov[3:, 3:] = Rm.T @ np.diag(np.maximum(pos_sigma, 1e-3) ** 2) @ Rm
+        bias = gtsam.imuBias.ConstantBias()
+        g = gtsam.NonlinearFactorGraph()
+        g.add(gtsam.PriorFactorPose3(X(0), pose, gtsam.noiseModel.Gaussian.Covariance(cov)))
+        g.add(gtsam.PriorFactorVector(V(0), vel, gtsam.noiseModel.Isotropic.Sigma(3, max(vel_sigma, 1e-3))))
+        g.add(gtsam.PriorFactorConstantBias(B(0), bias, gtsam.noiseModel.Diagonal.Sigmas(self.bias_sigmas)))
+        v = gtsam.Values()
+        v.insert(X(0), pose)
+        v.insert(V(0), vel)
+        v.insert(B(0), bias)
+        ts = gtsam.FixedLagSmootherKeyTimestampMap()
+        for k in (X(0), V(0), B(0)):
+            ts.insert((k, float(t)))
+        sm.update(g, v, ts)
+        return sm
+
+    def _reset(self, t, pos, vel, quat, pos_sigma, vel_sigma, att_sigma):
         self.n = 0
         self.t = float(t)
         R = _rot3(quat)
         self.pose = gtsam.Pose3(R, np.asarray(pos, float))
         self.vel = np.asarray(vel, float)
         self.bias = gtsam.imuBias.ConstantBias()
-        Rm = R.matrix()
-        cov = np.zeros((6, 6))
-        cov[:3, :3] = np.diag(np.maximum(att_sigma, 1e-4) ** 2)
-        cov[3:, 3:] = Rm.T @ np.diag(np.maximum(pos_sigma, 1e-3) ** 2) @ Rm
-        g = gtsam.NonlinearFactorGraph()
-        g.add(gtsam.PriorFactorPose3(X(0), self.pose, gtsam.noiseModel.Gaussian.Covariance(cov)))
-        g.add(gtsam.PriorFactorVector(V(0), self.vel, gtsam.noiseModel.Isotropic.Sigma(3, max(vel_sigma, 1e-3))))
-        g.add(gtsam.PriorFactorConstantBias(B(0), self.bias, gtsam.noiseModel.Diagonal.Sigmas(self.bias_sigmas)))
-        v = gtsam.Values()
-        v.insert(X(0), self.pose)
-        v.insert(V(0), self.vel)
-        v.insert(B(0), self.bias)
-        ts = gtsam.FixedLagSmootherKeyTimestampMap()
-        for k in (X(0), V(0), B(0)):
-            ts.insert((k, self.t))
-        self.smoother.update(g, v, ts)
+        self.smoother = self._new_smoother(t, self.pose, self.vel, pos_sigma, vel_sigma, att_sigma)
+        # own-sensor-only smoother (same own factors, never a cooperative one): its marginal is the
+        # covariance this node broadcasts when broadcast_cov = "own"
+        self.own = None
+        if self.cooperative and self.bcast_cov == "own":
+            self.own = self._new_smoother(t, self.pose, self.vel, pos_sigma, vel_sigma, att_sigma)
+            self.own_pose, self.own_vel, self.own_bias = self.pose, self.vel.copy(), self.bias
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.bias)
         self.p_loc = np.asarray(pos, float)
         self.P_loc = np.diag(np.maximum(pos_sigma, 1e-3) ** 2)
+        self.P_own = self.P_loc.copy()
         self.p = self.p_loc.copy()
         self._links_ready = False
 
@@ -175,6 +195,20 @@ class GraphEstimator(NodeEstimator):
         for key in (X(n), V(n), B(n)):
             ts.insert((key, inp.t))
         self.smoother.update(g, v, ts)
+        if self.own is not None:
+            po = self.pim.predict(gtsam.NavState(self.own_pose, self.own_vel), self.own_bias)
+            vo = gtsam.Values()
+            vo.insert(X(n), po.pose())
+            vo.insert(V(n), po.velocity())
+            vo.insert(B(n), self.own_bias)
+            self.own.update(g, vo, ts)
+            est = self.own.calculateEstimate()
+            self.own_pose = est.atPose3(X(n))
+            self.own_vel = np.asarray(est.atVector(V(n)), float)
+            self.own_bias = est.atConstantBias(B(n))
+            Ro = self.own_pose.rotation().matrix()
+            Po = Ro @ self.own.marginalCovariance(X(n))[3:, 3:] @ Ro.T
+            self.P_own = 0.5 * (Po + Po.T)
         self.n, self.t = n, inp.t
         self._read_estimate()
         cov6 = self.smoother.marginalCovariance(X(n))
@@ -201,6 +235,8 @@ class GraphEstimator(NodeEstimator):
         self.bias = est.atConstantBias(B(self.n))
 
     def _broadcast_cov(self) -> np.ndarray:
+        if self.own is not None:
+            return self.own_cov_scale * self.P_own
         return self.P_loc.copy()
 
     def _altitude_factor(self, key, height, sigma):
@@ -263,6 +299,8 @@ class GraphEstimator(NodeEstimator):
             positions[self.uav] = self._last_state.pos
             pairs, res = det.residual_matrix(positions, ranges)
             self.delta_h, cls, w = det.detect(res, self.delta_l, self.window, self.floor_factor, self.kmeans_backend)
+            if self.eq24_on == "residual":
+                w = w * w  # eq. 25 literally: l scales the residual, so the squared residual by l²
             self._final_res = res
             mine = np.flatnonzero((pairs[:, 0] == self.uav) | (pairs[:, 1] == self.uav))
             for i in mine:
@@ -270,6 +308,13 @@ class GraphEstimator(NodeEstimator):
                 if o in weights:
                     weights[o] = float(w[i])
                     res_own[o] = (float(res[i]), int(cls[i]))
+            if self.sticky and r > 1:
+                # a link flagged in an earlier round of the epoch stays flagged: the residuals of
+                # later rounds are on positions the faulty link itself has already pulled
+                for o, (rv, c) in self._res_own.items():
+                    if o in weights and o in res_own and self._weights.get(o, 1.0) < weights[o]:
+                        weights[o] = self._weights[o]
+                        res_own[o] = (res_own[o][0], min(c, res_own[o][1]))
         self._weights, self._res_own, self._nb = weights, res_own, nb
         self._peers = peers
         self._prepare_links()
