@@ -103,10 +103,10 @@ def launch(spec: LaunchSpec) -> tuple[int, dict]:
     logs = spec.run_dir / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     py = sys.executable
-    prof = os.environ.get("SWARMNAV_PROFILE")  # dev hook: cProfile every service into <run>/logs/<name>.prof
+    prof = os.environ.get("SWARMNAV_PROFILE")  # dev hook: CPU-time cProfile of every service into <run>/logs/<name>.prof
 
     def pyrun(name: str) -> list[str]:
-        return [py, "-m", "cProfile", "-o", str(logs / f"{name}.prof")] if prof else [py]
+        return [py, "-m", "deploy.profrun", str(logs / f"{name}.prof")] if prof else [py]
 
     common = ["--router", router, "--run", run_id]
     mon = Proc("monitor", [*pyrun("monitor"), "-m", "services.monitor", *common, "--dataset", str(spec.dataset), "--seed", str(spec.seed),

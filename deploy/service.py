@@ -96,6 +96,25 @@ def install_signals(inbox: Inbox) -> None:
     signal.signal(signal.SIGINT, handler)
 
 
+def code_digest() -> str:
+    """12 hex of the sha256 over the swarmnav core sources (path + bytes) this process runs.
+
+    Logged by every node at start-up: an in-process and a distributed run only agree when both ran
+    the same estimator code, and a source file edited between two process starts is otherwise
+    invisible (``git describe`` only says "-dirty")."""
+    import hashlib
+    from pathlib import Path
+
+    import swarmnav
+
+    root = Path(swarmnav.__file__).parent
+    h = hashlib.sha256()
+    for f in sorted(root.rglob("*.py")):
+        h.update(str(f.relative_to(root)).encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()[:12]
+
+
 def setup_logging(name: str) -> logging.Logger:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format=f"%(asctime)s.%(msecs)03d {name} %(levelname)s %(message)s", datefmt="%H:%M:%S")

@@ -94,8 +94,17 @@ def test_distributed_equals_in_process_with_garbage(smoke, base):
     from swarmnav.estimators import registry
     from swarmnav.evaluation import run_algorithm
 
+    from deploy.service import code_digest
+
     ds = Dataset.read(smoke)
     ref = run_algorithm(ds, ALGO, 1, registry.settings_for_dataset(ds.meta))
+    # both sides must have run the same estimator code (sources may be edited while tests run)
+    mine = code_digest()
+    theirs = {u: re.search(r"code ([0-9a-f]{12})", (base["dir"] / "logs" / f"uav{u}.log").read_text()).group(1)
+              for u in ds.meta.uav_ids()}
+    if set(theirs.values()) != {mine}:
+        pytest.fail(f"swarmnav sources changed during the test (in-process ran {mine}, nodes ran {theirs}): "
+                    "an edit in progress, not a transport difference; rerun")
     rep, est = base["rep"], base["est"]
     assert rep["mode"] == "distributed" and rep["events"] == []
     assert np.isfinite(est["pos"]).all()

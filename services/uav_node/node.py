@@ -21,7 +21,7 @@ import os
 import time
 from collections import deque
 
-from deploy.service import Deadline, Inbox, finish_process, install_signals, setup_logging
+from deploy.service import Deadline, Inbox, code_digest, finish_process, install_signals, setup_logging
 from deploy.zconf import client_config
 from swarmnav.dataset import DatasetMeta
 from swarmnav.estimators import registry
@@ -75,6 +75,7 @@ class Node:
 
     def setup(self):
         a = self.a
+        self.code = code_digest()  # right after the imports: the estimator code this process runs
         mm = self.query_one(keys.meta(self.run), M.MetaMsg, a.startup_timeout)
         self.meta = DatasetMeta.model_validate(mm.meta)
         self.seed = mm.seed
@@ -99,7 +100,8 @@ class Node:
         self.pub_est = self.s.declare_publisher(keys.uav(self.run, self.uav, "estimate"))
         self.pub_links = self.s.declare_publisher(keys.uav(self.run, self.uav, "links"))
         self.token = self.s.liveliness().declare_token(keys.alive(self.run, "uav", self.uav))
-        self.log.info("UAV %d up: algo %s, rounds %d, rejoin %s", self.uav, a.algo, self.rounds, a.rejoin)
+        self.log.info("UAV %d up: algo %s, rounds %d, rejoin %s, code %s", self.uav, a.algo, self.rounds, a.rejoin,
+                      self.code)
 
     # -- inbox handling (light: decode + buffer) -------------------------------------------
     def handle(self, tag, item):
