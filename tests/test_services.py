@@ -11,7 +11,8 @@ Two launches (module fixtures, ~10 s each on 2 cores):
 * ``drop``: UAV 2 SIGKILLed at t=15 s and restarted at t=25 s. Every other node estimates every
   epoch without stalling, nobody uses UAV 2's states while it is gone, the monitor records the
   dropout and the rejoin, the restarted node bootstraps from its peers by query and its error
-  comes back.
+  comes back; the whole run equals an in-process emulation of the same kill/restart schedule
+  (1e-6 m; observed bit-identical).
 
 Both launches must exit 0 in every process (no hang, no abort at exit) and leave no process behind.
 """
@@ -77,6 +78,46 @@ def truth(smoke):
     from swarmnav.evaluation import truth_at_epochs
 
     return truth_at_epochs(Dataset.read(smoke))
+
+
+def _in_process_dropout(dataset, uav, t_kill, t_restart):
+    """The kill/restart run emulated in one process with the core's epoch protocol: the UAV takes no
+    part in epochs with t_kill <= t < t_restart; before the first epoch with t >= t_restart it is
+    rebuilt from the sensor-sim's restart alignment and bootstrapped from its peers' last states."""
+    from services.sensor_sim.sim import restart_initial_state
+    from swarmnav.dataset import Dataset, EpochSlicer
+    from swarmnav.estimators import registry
+    from swarmnav.evaluation import truth_at_epochs
+    from swarmnav.initial import initial_states
+    from swarmnav.protocol import node_epoch
+
+    ds = Dataset.read(dataset)
+    meta, uavs, K = ds.meta, ds.meta.uav_ids(), ds.meta.n_epochs()
+    st = registry.settings_for_dataset(meta)
+    rounds, tol = int(st.get("rounds", 3)), float(st.get("convergence_m", 0.0))
+    inits, tr, sl = initial_states(ds, 1), truth_at_epochs(ds), EpochSlicer(ds)
+    nodes = {u: registry.make_node(ALGO, u, meta, st, inits[u]) for u in uavs}
+    last, pos, restarted = {}, np.full((K, len(uavs), 3), np.nan), False
+    for k in range(1, K + 1):
+        t = meta.epoch_time(k)
+        if t >= t_restart and not restarted:
+            restarted = True
+            nodes[uav] = registry.make_node(ALGO, uav, meta, st, restart_initial_state(tr, inits, uavs, 1, uav, k))
+            inp = sl.epoch(k, uav)
+            nodes[uav].bootstrap(inp.t_prev, {u: s for u, s in sorted(last.items()) if u != uav}, inp)
+        part = [u for u in uavs if u != uav or not (t_kill <= t < t_restart)]
+        gens = {u: node_epoch(nodes[u], sl.epoch(k, u), rounds, tol) for u in part}
+        states = {u: next(g) for u, g in gens.items()}
+        while gens:
+            snap = dict(states)
+            for u, g in list(gens.items()):
+                try:
+                    states[u] = g.send({j: s for j, s in snap.items() if j != u})
+                except StopIteration as stop:
+                    pos[k - 1, uavs.index(u)] = stop.value.pos
+                    del gens[u]
+        last.update({u: snap[u] for u in part})
+    return pos
 
 
 def _clean_exit(run):
@@ -169,6 +210,8 @@ def test_dropout_and_rejoin(smoke, drop, truth):
     m = re.search(r"rejoin True.*?bootstrapping at epoch (\d+) from peers \[([\d, ]+)\]", log, re.S)
     assert m and int(m.group(1)) == int(np.argmax(t >= RESTART_T)) + 1, log[-1500:]
     assert sorted(map(int, m.group(2).split(","))) == [u for u in uavs if u != 2]
+    # the whole run, dropout and rejoin included, is the in-process emulation of the same schedule
+    np.testing.assert_allclose(pos, _in_process_dropout(smoke, 2, KILL_T, RESTART_T), rtol=0, atol=1e-6)
     # and its error comes down (it restarts from a coarse alignment)
     err = np.linalg.norm(pos[:, j] - truth.pos[:, j], axis=1)
     back = t >= RESTART_T
@@ -185,7 +228,8 @@ def test_dropout_and_rejoin(smoke, drop, truth):
 
 @pytest.mark.xfail(reason="estimator (graph.py) bootstrap places the GNSS fix of t_k at t_(k-1): the restarted node "
                           "starts one epoch of motion ahead (~13 m on smoke) and is still ~1.7 m off (normal ~0.4 m) "
-                          "30 epochs later", strict=False)
+                          "30 epochs later. Verified remedy (in-process emulation): bootstrap with gnss_pos - gnss_vel * "
+                          "(t - t_prev) -> 1.6 m at the rejoin, 0.4 m five epochs later", strict=False)
 def test_rejoined_error_normal_within_30_epochs(base, drop, truth):
     t = drop["est"]["t"]
     j = list(drop["est"]["uavs"]).index(2)

@@ -27,6 +27,7 @@ from deploy.zconf import client_config
 from swarmnav.dataset import Dataset, EpochSlicer
 from swarmnav.evaluation import truth_at_epochs
 from swarmnav.geometry import quat_from_rotvec, quat_mul
+from swarmnav.estimators.base import InitialState
 from swarmnav.initial import initial_states
 from swarmnav.wire import keys
 from swarmnav.wire import messages as M
@@ -57,6 +58,20 @@ def parse_args(argv=None):
     p.add_argument("--no-monitor", action="store_true", help="do not wait for a monitor at start")
     p.add_argument("--zenoh-config", default=None)
     return p.parse_args(argv)
+
+
+def restart_initial_state(truth, inits: dict, uavs: list[int], seed: int, u: int, k: int) -> InitialState:
+    """Initial knowledge of UAV ``u`` restarted before epoch ``k``: a coarse alignment at epoch k's
+    time with the same sigmas as at t=0 (truth + noise, seeded by (seed, u, k)). Module-level so an
+    in-process emulation of a kill/restart run (tests/test_services.py) uses the very same numbers."""
+    j = uavs.index(u)
+    i0 = inits[u]
+    rng = np.random.default_rng([seed, u, k, 0x5EED])
+    pos = truth.pos[k - 1, j] + rng.normal(0, 1, 3) * i0.pos_sigma
+    vel = truth.vel[k - 1, j] + rng.normal(0, i0.vel_sigma, 3)
+    q = quat_mul(quat_from_rotvec(rng.normal(0, 1, 3) * i0.att_sigma), truth.quat[k - 1, j])
+    return InitialState(t=float(truth.t[k - 1]), pos=pos, vel=vel, quat=q, pos_sigma=np.asarray(i0.pos_sigma, float),
+                        vel_sigma=float(i0.vel_sigma), att_sigma=np.asarray(i0.att_sigma, float))
 
 
 class SensorSim:
@@ -99,18 +114,7 @@ class SensorSim:
         self.token = self.s.liveliness().declare_token(keys.alive(self.run, "sensor_sim", 0))
 
     def restart_init(self, u: int) -> M.InitMsg:
-        """Coarse alignment at the current epoch for a restarted node (same sigmas as at t=0)."""
-        k = max(self.k, 1)
-        j = self.uavs.index(u)
-        i0 = self.inits[u]
-        rng = np.random.default_rng([self.a.seed, u, k, 0x5EED])
-        tr = self.truth
-        pos = tr.pos[k - 1, j] + rng.normal(0, 1, 3) * i0.pos_sigma
-        vel = tr.vel[k - 1, j] + rng.normal(0, i0.vel_sigma, 3)
-        q = quat_mul(quat_from_rotvec(rng.normal(0, 1, 3) * i0.att_sigma), tr.quat[k - 1, j])
-        return M.InitMsg(uav=u, t=float(tr.t[k - 1]), pos=list(map(float, pos)), vel=list(map(float, vel)),
-                         quat=list(map(float, q)), pos_sigma=list(map(float, i0.pos_sigma)),
-                         vel_sigma=float(i0.vel_sigma), att_sigma=list(map(float, i0.att_sigma)))
+        return M.init_to_msg(u, restart_initial_state(self.truth, self.inits, self.uavs, self.a.seed, u, max(self.k, 1)))
 
     def handle(self, tag, item):
         if tag == "_wake":
