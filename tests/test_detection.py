@@ -90,12 +90,65 @@ def test_faulty_links_excluded_and_interfered_downweighted():
     inter = rng.uniform(1.5, 6, 8)
     fail = rng.uniform(30, 150, 10)
     x = np.concatenate([clean, inter, fail])
-    dh, cls, w = D.detect(x, 0.35)
-    assert 6 < dh < 150
-    # failures: excluded, or (below a Δh that K-means put inside their spread) nearly zero weight
-    assert np.all(cls[-10:] != int(LinkClass.H2_NORMAL)) and np.all(w[-10:] < 0.02)
-    assert np.all(cls[140:148] == int(LinkClass.H1_INTERFERED)) and np.all((w[140:148] > 0) & (w[140:148] < 0.3))
+    dl = 0.35
+    dh, cls, w = D.detect(x, dl)
+    assert D.DEFAULT_FLOOR_FACTOR * dl <= dh <= D.DEFAULT_CEIL_FACTOR * dl
+    assert np.all(cls[-10:] == int(LinkClass.H0_FAILED)) and np.all(w[-10:] == 0)
+    # interference: down-weighted (H1, weight < 0.3) or excluded (H0), never full weight
+    assert np.all(cls[140:148] != int(LinkClass.H2_NORMAL)) and np.all(w[140:148] < 0.3)
     assert np.mean(cls[:140] == int(LinkClass.H2_NORMAL)) > 0.97
+    # without the ceiling (plain 2-means) Δh may land above the interference: then all of it is H1
+    dh0, cls0, _ = D.detect(x, dl, ceil_factor=None)
+    assert dh0 > 6 and np.all(cls0[140:148] == int(LinkClass.H1_INTERFERED))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_module_failure_spread_all_h0(seed):
+    # paper fault 2: one module failed (17 links, range + U(20, 150) m) while ~10 % of links are
+    # interfered (+U(1, 8) m); plain 2-means cuts INSIDE the failure spread, so low failures were H1
+    rng = np.random.default_rng(100 + seed)
+    dl = 0.7
+    clean = np.abs(rng.normal(0, 0.2, 130))
+    inter = rng.uniform(1, 8, 15)
+    fail = rng.uniform(20, 150, 17)
+    x = np.concatenate([clean, inter, fail])
+    assert D.two_means_boundary(x) > 20  # the problem: the first split is inside the failures
+    dh, cls, w = D.detect(x, dl)
+    assert D.DEFAULT_FLOOR_FACTOR * dl <= dh <= D.DEFAULT_CEIL_FACTOR * dl
+    assert np.all(cls[-17:] == int(LinkClass.H0_FAILED)) and np.all(w[-17:] == 0)
+    assert np.all(cls[130:145] != int(LinkClass.H2_NORMAL))
+    h1 = cls == int(LinkClass.H1_INTERFERED)
+    assert np.all(w[h1] <= (dl / x[h1]) ** 2 + 1e-12)  # the eq. 25 cap
+    assert np.all(cls[:130] == int(LinkClass.H2_NORMAL))
+    # same with the failures alone beside clean links (no interference)
+    dh2, cls2, _ = D.detect(np.concatenate([clean, fail]), dl)
+    assert np.all(cls2[-17:] == int(LinkClass.H0_FAILED)) and np.all(cls2[:130] == int(LinkClass.H2_NORMAL))
+
+
+def test_ceiling_descent_and_clamp():
+    dl = 0.5
+    # a single wide fault cluster: descent stops at the clean/fault split
+    x = np.r_[np.linspace(0, 0.4, 50), np.linspace(3, 200, 20)]
+    dh = D.upper_threshold(x, dl)
+    assert D.DEFAULT_FLOOR_FACTOR * dl <= dh <= 3.0
+    assert D.upper_threshold(x, dl, ceil_factor=None) > 3.0
+    # clean only: the fault-free guard
+    assert D.upper_threshold(np.linspace(0, 0.4, 50), dl) == pytest.approx(D.DEFAULT_FLOOR_FACTOR * dl)
+    # ceiling never below the floor
+    assert D.upper_threshold(x, dl, floor_factor=4.0, ceil_factor=2.0) == pytest.approx(4.0 * dl)
+
+
+def test_h1_weight_cap_eq25():
+    dl, dh = 0.7, 7.0
+    r = np.linspace(0, 10, 1001)
+    cap = D.weight_cap_eq25(r, dl)
+    assert np.all(cap[r <= dl] == 1.0) and D.weight_cap_eq25([dl + 1e-9], dl)[0] == pytest.approx(1.0, abs=1e-6)
+    assert np.all(np.diff(cap) <= 1e-12)
+    _, _, w = D.detect(r, dl, cap_h1=True, ceil_factor=None, floor_factor=dh / dl)
+    assert np.all(w <= cap + 1e-12) and np.all(w <= D.weight_eq24(r, dl, dh) + 1e-12)
+    # influence w·∂ (∝ pull on the estimate) decreases beyond Δl: redescending, not Huber-flat
+    m = (r > dl) & (r < dh)
+    assert np.all(np.diff((w * r)[m]) <= 1e-12)
 
 
 def test_sliding_window_pools_sparse_epochs():
@@ -105,7 +158,7 @@ def test_sliding_window_pools_sparse_epochs():
     pooled = win.values(np.array([0.15]))
     assert sorted(pooled.tolist()) == [0.1, 0.15, 0.2, 50.0]
     dh, cls, _ = D.detect(np.array([0.15]), 0.3, window=win)
-    assert dh > 0.9 and cls.tolist() == [int(LinkClass.H2_NORMAL)]
+    assert dh >= 0.9 - 1e-9 and cls.tolist() == [int(LinkClass.H2_NORMAL)]
     win.push(np.array([0.1]))
     win.push(np.array([0.1]))
     assert 50.0 not in win.values(np.array([0.1])).tolist()

@@ -224,6 +224,9 @@ class Estimation(_Model):
     delta_l_fallback_sigmas: PositiveFloat = 3.0  # Δl = this × UWB sigma when no training exists
     residual_window_epochs: int = Field(1, ge=1)  # K-means over a sliding window (sparse real data)
     peer_timeout_s: PositiveFloat = 2.0  # distributed: wall-clock wait for a live peer's round state
+    # optional estimator tuning overrides (graph.py settings keys, e.g. broadcast_cov, commit_weight);
+    # None = the estimators' documented defaults
+    graph: dict[str, float | int | bool | str | None] | None = None
 
 
 class Scenario(_Model):

@@ -14,6 +14,19 @@ two). So Δh is never allowed below ``floor_factor × Δl`` (default 3): with no
 residual is ≲ Δl (Δl is the 99th percentile of fault-free converged residuals), so nothing clean is
 excluded, and a clean residual that does exceed Δl is only down-weighted (H1), not removed.
 
+*Ceiling with 2-means descent* (``ceil_factor``, default 10). A failed module's residuals (paper
+fault 2: range + U(20, 150) m on all of that UAV's links) form a wide cluster, and the SSE optimum
+then cuts *inside* it: the lower failures became H1 with a small non-zero weight, which at
+σ_eff = σ/√l ≈ 1 m still dragged the estimate by tens of metres. So while the boundary is above
+``ceil_factor × Δl`` 2-means is re-run on the low cluster (the split was fault vs fault, not fault vs
+clean), and the result is clamped to [floor, ceil]. Interference (1–8 m) then lands H1 or H0,
+failures H0, clean links H2 (tests/test_detection.py::test_module_failure_spread_all_h0).
+
+*H1 weight cap* (``cap_h1``, default on): weight = min(l(∂), (Δl/∂)²) — eq. 25 read literally
+(l on the residual ⇒ l² on the squared one, l ≈ Δl/∂). It bounds an H1 link's pull: σ_eff ≥ σ·∂/Δl,
+influence Δl²/(∂σ²) decreasing in ∂. Eq. 24 remains the weight function; the cap only bites when
+Δh is large relative to ∂.
+
 Step 3, Δl: offline training (``swarmnav.calibration``), or ``fallback_sigmas × σ_uwb``.
 
 Classification: H0 (∂ > Δh, excluded), H1 (Δl < ∂ ≤ Δh, weight l(∂) of eq. 24), H2 (∂ ≤ Δl, full).
@@ -43,6 +56,7 @@ from .base import LinkClass
 H0, H1, H2 = LinkClass.H0_FAILED, LinkClass.H1_INTERFERED, LinkClass.H2_NORMAL
 
 DEFAULT_FLOOR_FACTOR = 3.0
+DEFAULT_CEIL_FACTOR = 10.0
 
 
 def residual_matrix(positions: Mapping[int, np.ndarray], ranges: Mapping[tuple[int, int], float]
@@ -94,10 +108,28 @@ def two_means_boundary(x: np.ndarray, backend: str = "exact") -> float | None:
 
 
 def upper_threshold(residuals: np.ndarray, delta_l: float, floor_factor: float = DEFAULT_FLOOR_FACTOR,
-                    backend: str = "exact") -> float:
-    """Δh = max(K-means boundary, floor_factor × Δl) (fault-free guard, module docstring)."""
+                    backend: str = "exact", ceil_factor: float | None = DEFAULT_CEIL_FACTOR) -> float:
+    """Δh = the 2-means boundary, descended and clamped to [floor_factor·Δl, ceil_factor·Δl].
+
+    *Descent* (when ``ceil_factor`` is set): while the boundary lies above ``ceil_factor·Δl`` the
+    split separated a wide fault cluster from the rest, not faults from clean links (a failed
+    module's residuals, 20–150 m, make 2-means cut *inside* their own spread); 2-means is re-run on
+    the low cluster. Then the result is clamped: the fault-free guard from below, the ceiling from
+    above (module docstring).
+    """
     floor = floor_factor * delta_l
-    b = two_means_boundary(residuals, backend)
+    x = np.asarray(residuals, float).ravel()
+    b = two_means_boundary(x, backend)
+    if ceil_factor is not None:
+        ceil = max(ceil_factor * delta_l, floor)
+        while b is not None and b > ceil:
+            x = x[x <= b]
+            nb = two_means_boundary(x, backend)
+            if nb is None or nb >= b:
+                break
+            b = nb
+        if b is not None:
+            b = min(b, ceil)
     return floor if b is None else max(b, floor)
 
 
@@ -133,6 +165,22 @@ def weight_eq24(residuals, delta_l: float, delta_h: float) -> np.ndarray:
     return w
 
 
+def weight_cap_eq25(residuals, delta_l: float) -> np.ndarray:
+    """Bound on an H1 link's IRLS weight: (Δl/∂)² (1 below Δl) — eq. 25 read literally.
+
+    With weight w the link's effective sigma is σ/√w; capping w at (Δl/∂)² makes that sigma at
+    least σ·∂/Δl, i.e. a link whose residual is n times Δl is trusted n times less in sigma, and
+    its influence w·∂/σ² = Δl²/(∂σ²) decreases with ∂ (redescending) instead of staying at the
+    Huber level Δl/σ². Continuous at Δl (1); below eq. 24 only where eq. 24's taper is still near
+    1 (Δh well above ∂), i.e. it matters when Δh is large.
+    """
+    r = np.abs(np.asarray(residuals, float))
+    w = np.ones_like(r)
+    m = r > delta_l
+    w[m] = (delta_l / r[m]) ** 2
+    return w
+
+
 class ResidualWindow:
     """Residuals of the last ``epochs`` epochs for clustering on sparse data."""
 
@@ -153,12 +201,17 @@ class ResidualWindow:
 
 
 def detect(pairs_res: np.ndarray, delta_l: float, window: ResidualWindow | None = None,
-           floor_factor: float = DEFAULT_FLOOR_FACTOR, backend: str = "exact"
+           floor_factor: float = DEFAULT_FLOOR_FACTOR, backend: str = "exact",
+           ceil_factor: float | None = DEFAULT_CEIL_FACTOR, cap_h1: bool = True
            ) -> tuple[float, np.ndarray, np.ndarray]:
-    """Δh, classes and eq. 24 weights for the current residuals (convenience wrapper)."""
+    """Δh, classes and weights for the current residuals (convenience wrapper).
+
+    Weights: eq. 24, and with ``cap_h1`` at most (Δl/∂)² (:func:`weight_cap_eq25`)."""
     pool = window.values(pairs_res) if window is not None else pairs_res
-    dh = upper_threshold(pool, delta_l, floor_factor, backend)
+    dh = upper_threshold(pool, delta_l, floor_factor, backend, ceil_factor)
     cls = classify(pairs_res, delta_l, dh)
     w = weight_eq24(pairs_res, delta_l, dh)
+    if cap_h1:
+        w = np.minimum(w, weight_cap_eq25(pairs_res, delta_l))
     w[cls == int(H0)] = 0.0
     return dh, cls, w

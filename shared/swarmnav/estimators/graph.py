@@ -14,8 +14,9 @@ Epoch k (driven by ``swarmnav.protocol``):
 ``iterate(r, peers)``
     the epoch's UWB part is rebuilt from scratch every round (the time-varying graph):
     atvfg — residual matrix over every ranged pair on the round's broadcast positions → Δh by
-    2-means → H0/H1/H2 (detection.py); H0 neighbours leave the graph (range *and* az/el), H1 links
-    get the eq. 24 weight, H2 full weight. fg — every in-range link, weight 1. Then a small
+    2-means (descended below a ceiling of ``delta_h_ceil_factor``·Δl, floored at 3·Δl) → H0/H1/H2
+    (detection.py); H0 neighbours leave the graph (range *and* az/el), H1 links get the eq. 24
+    weight capped at (Δl/∂)² (``h1_weight_cap``), H2 full weight. fg — every in-range link, weight 1. Then a small
     Gauss–Newton solve on the node's own position: the local prior N(p_loc, P_loc) plus the range
     (and eq. 27 az/el) factors to the neighbours, whose broadcast positions enter with their
     covariance marginalised into each factor's noise ("factor to an uncertain neighbour",
@@ -76,7 +77,9 @@ class GraphEstimator(NodeEstimator):
 
     def __init__(self, uav: int, meta: DatasetMeta, settings: dict, init: InitialState):
         super().__init__(uav, meta, settings, init)
-        s = settings or {}
+        s = dict(settings or {})
+        s.update(s.get("graph") or {})  # optional [estimation.graph] table: estimator tuning overrides
+        settings = s
         self.lag = float(s.get("fixed_lag_s", 5.0))
         self.uwb_sigma = float(meta.uwb_sigma_m)
         self.rel_sigma = float(meta.rel_sigma_rad) if meta.rel_sigma_rad else None
@@ -84,6 +87,10 @@ class GraphEstimator(NodeEstimator):
         self.delta_l = float(dl) if dl else float(s.get("delta_l_fallback_sigmas", 3.0)) * self.uwb_sigma
         self.floor_factor = float(s.get("delta_h_floor_factor", det.DEFAULT_FLOOR_FACTOR))
         self.kmeans_backend = str(s.get("kmeans_backend", "exact"))
+        # Δh ceiling (× Δl) with 2-means descent, and the (Δl/∂)² cap on H1 weights (detection.py)
+        cf = s.get("delta_h_ceil_factor", det.DEFAULT_CEIL_FACTOR)
+        self.ceil_factor = None if cf is None or float(cf) <= 0 else float(cf)
+        self.cap_h1 = bool(s.get("h1_weight_cap", True))
         self.use_azel = bool(s.get("use_azel", True))
         # what a broadcast's covariance is: "own" = the node's own-sensor-only marginal (a second,
         # non-cooperative smoother), "local" = the cooperative smoother's marginal before this
@@ -298,7 +305,8 @@ class GraphEstimator(NodeEstimator):
             positions = {j: s.pos for j, s in peers.items()}
             positions[self.uav] = self._last_state.pos
             pairs, res = det.residual_matrix(positions, ranges)
-            self.delta_h, cls, w = det.detect(res, self.delta_l, self.window, self.floor_factor, self.kmeans_backend)
+            self.delta_h, cls, w = det.detect(res, self.delta_l, self.window, self.floor_factor,
+                                                 self.kmeans_backend, self.ceil_factor, self.cap_h1)
             if self.eq24_on == "residual":
                 w = w * w  # eq. 25 literally: l scales the residual, so the squared residual by l²
             self._final_res = res
