@@ -162,3 +162,18 @@ def test_sliding_window_pools_sparse_epochs():
     win.push(np.array([0.1]))
     win.push(np.array([0.1]))
     assert 50.0 not in win.values(np.array([0.1])).tolist()
+
+
+def test_adaptive_window_pools_until_enough_residuals():
+    win = D.ResidualWindow(1, min_residuals=5, max_epochs=4)
+    for v in ([0.1, 0.2], [0.3], [0.4, 0.5], [0.6]):
+        win.push(np.array(v))
+    # 1 current + newest first: [0.6], [0.4, 0.5], [0.3] -> 5 reached, [0.1, 0.2] evicted anyway (max 4)
+    assert sorted(win.values(np.array([0.05])).tolist()) == [0.05, 0.3, 0.4, 0.5, 0.6]
+    # a dense epoch is clustered alone
+    dense = np.linspace(0, 1, 10)
+    assert len(win.values(dense)) == 10
+    # default (no min) keeps the old single-epoch behaviour
+    w0 = D.ResidualWindow(1)
+    w0.push(np.array([1.0]))
+    assert w0.values(np.array([0.1])).tolist() == [0.1]

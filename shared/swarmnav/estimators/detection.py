@@ -182,21 +182,40 @@ def weight_cap_eq25(residuals, delta_l: float) -> np.ndarray:
 
 
 class ResidualWindow:
-    """Residuals of the last ``epochs`` epochs for clustering on sparse data."""
+    """Recent epochs' residuals for clustering on sparse data.
 
-    def __init__(self, epochs: int = 1):
+    Fixed (``epochs`` > 1): the current epoch plus the previous ``epochs`` − 1. Adaptive
+    (``epochs`` == 1, the default, with ``min_residuals`` > 0): the current epoch alone when it has
+    at least ``min_residuals`` residuals (the paper: ~150 per epoch, so unchanged), else the most
+    recent earlier epochs are added, newest first, until that count is reached or ``max_epochs``
+    epochs are pooled — so a sparse recording (MILUV: ~1.6 inter-UAV ranges per epoch) needs no
+    per-dataset window setting.
+    """
+
+    def __init__(self, epochs: int = 1, min_residuals: int = 0, max_epochs: int = 30):
         self.epochs = max(1, int(epochs))
-        self._hist: deque[np.ndarray] = deque(maxlen=self.epochs - 1 if self.epochs > 1 else 0)
+        self.min_residuals = max(0, int(min_residuals)) if self.epochs == 1 else 0
+        n = self.epochs - 1 if self.epochs > 1 else (max(1, int(max_epochs)) - 1 if self.min_residuals else 0)
+        self._hist: deque[np.ndarray] = deque(maxlen=n)
 
     def values(self, current: np.ndarray) -> np.ndarray:
-        """The current epoch's residuals together with those of the previous W−1 epochs."""
+        """The current epoch's residuals together with the pooled earlier ones."""
+        cur = np.asarray(current, float)
         if not self._hist:
-            return np.asarray(current, float)
-        return np.concatenate([*self._hist, np.asarray(current, float)])
+            return cur
+        if self.min_residuals:
+            parts, n = [cur], len(cur)
+            for h in reversed(self._hist):
+                if n >= self.min_residuals:
+                    break
+                parts.append(h)
+                n += len(h)
+            return np.concatenate(parts)
+        return np.concatenate([*self._hist, cur])
 
     def push(self, final: np.ndarray) -> None:
         """Store an epoch's final (last-round) residuals."""
-        if self.epochs > 1:
+        if self._hist.maxlen:
             self._hist.append(np.asarray(final, float).copy())
 
 

@@ -101,7 +101,11 @@ class GraphEstimator(NodeEstimator):
         self.gn_iters = int(s.get("gn_iterations", 2))
         self.sticky = bool(s.get("sticky_detection", False))
         self.eq24_on = str(s.get("eq24_applies_to", "squared"))  # "residual" (eq. 25) | "squared"
-        self.window = det.ResidualWindow(int(s.get("residual_window_epochs", 1)))
+        # K-means pool: fixed window if residual_window_epochs > 1, else adaptive (>= 16 residuals,
+        # at most 30 epochs; the paper's ~150 per epoch -> current epoch only)
+        self.window = det.ResidualWindow(int(s.get("residual_window_epochs", 1)),
+                                         int(s.get("residual_window_min", 16)),
+                                         int(s.get("residual_window_max_epochs", 30)))
         node = meta.node(uav)
         self.tags = {int(k): np.asarray(v, float) for k, v in node.tags.items()}
         self.anchors = meta.anchors()
