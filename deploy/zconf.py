@@ -12,6 +12,7 @@ import json
 import socket
 
 LEASE_MS = 3000
+DROP_WAIT_US = 20_000
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -25,6 +26,9 @@ def _base(conf) -> None:
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("scouting/gossip/enabled", "true")
     conf.insert_json5("transport/link/tx/lease", str(LEASE_MS))
+    # DROP publishers (peer states) wait this long for room in a congested link queue before
+    # dropping (default 1 ms): 20 processes on 2 cores starve the router for longer than that
+    conf.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop", str(DROP_WAIT_US))
 
 
 def router_config(listen: list[str], config_file: str | None = None):

@@ -64,7 +64,7 @@ def _good_uwb():
 
 
 @pytest.mark.parametrize("mutate,reason", [
-    (lambda d: d.update(v=2), "version"),
+    (lambda d: d.update(v=M.SCHEMA_VERSION + 1), "version"),
     (lambda d: d.pop("v"), "version"),
     (lambda d: d.update(range_m=[-1.0]), "invalid"),
     (lambda d: d.update(range_m=[float("nan")]), "invalid"),
@@ -110,3 +110,101 @@ def test_rejects_counter(caplog):
         r.add("state", M.WireError("stale", "z"))
     assert r.total == 3 and r.as_dict() == {"imu:malformed": 2, "state:stale": 1}
     assert "rejected message on imu" in caplog.text
+
+
+# -- binary frames (uav/<id>/input, uav/<id>/state) ----------------------------------------------
+
+
+def _input(rng, uav=2, k=4):
+    x = rng.normal(size=100) * 10.0 ** rng.integers(-300, 300, 100)  # extreme magnitudes: bytes are copied
+    return EpochInput(uav=uav, k=k, t=4.0, t_prev=3.0, imu_t=np.arange(3.0, 4.0, 0.01), gyro=rng.normal(size=(100, 3)),
+                      accel=np.c_[x, x, x], gnss_pos=rng.normal(size=3), gnss_vel=rng.normal(size=3),
+                      gnss_pos_sigma=np.array([5.0, 5, 8]), gnss_vel_sigma=0.2, range_t=np.array([3.5, 4.0]),
+                      range_other=np.array([1, 3]), range_tag_self=np.array([0, 1]), range_tag_other=np.array([0, 0]),
+                      range_m=np.array([50.1, 80.2]), range_sigma=np.array([0.1, 0.1]), rel_target=np.array([1]),
+                      rel_az=np.array([0.3]), rel_el=np.array([-0.1]), rel_sigma=np.array([0.017]), altitude=12.5,
+                      altitude_sigma=0.5)
+
+
+def _same_input(inp, out):
+    for f in inp.__dataclass_fields__:
+        a, b = getattr(inp, f), getattr(out, f)
+        if isinstance(a, np.ndarray):
+            assert a.dtype.kind == b.dtype.kind and a.shape == b.shape and np.array_equal(a, b), f
+        else:
+            assert a == b, f
+
+
+def test_input_frame_exact():
+    rng = np.random.default_rng(5)
+    inp = _input(rng)
+    out, part = M.decode_input(M.encode_input(inp, [3, 1, 2]), uav=2, min_k=4)
+    assert part == [1, 2, 3]
+    _same_input(inp, out)
+    # no GNSS, no ranges, no az/el: the defaults of EpochInput stay as they are
+    bare = EpochInput(uav=2, k=5, t=5.0, t_prev=4.0, imu_t=inp.imu_t, gyro=inp.gyro, accel=inp.accel)
+    _same_input(bare, M.decode_input(M.encode_input(bare, [2]))[0])
+
+
+@pytest.mark.parametrize("mutate, reason", [
+    (lambda b: b"not json", "malformed"),
+    (lambda b: b[:3] + bytes([M.SCHEMA_VERSION + 1]) + b[4:], "version"),
+    (lambda b: b[:-8], "malformed"),
+    (lambda b: b[:-8] + np.array([0], "<i8").tobytes(), "invalid"),  # az/el target id 0 (the last int64)
+])
+def test_input_frame_rejects(mutate, reason):
+    b = M.encode_input(_input(np.random.default_rng(6)), [1, 2, 3])
+    with pytest.raises(M.WireError) as e:
+        M.decode_input(mutate(b), uav=2)
+    assert e.value.reason == reason
+
+
+def test_input_frame_rejects_values():
+    rng = np.random.default_rng(7)
+    for field, value, reason in (("accel", np.full((100, 3), np.nan), "invalid"), ("range_m", np.array([-1.0, 2.0]), "invalid"),
+                                 ("range_sigma", np.array([0.0, 1.0]), "invalid"), ("range_other", np.array([2, 3]), "invalid"),
+                                 ("rel_target", np.array([2]), "invalid")):
+        inp = _input(rng)
+        setattr(inp, field, value)
+        with pytest.raises(M.WireError) as e:
+            M.decode_input(M.encode_input(inp, [1, 2, 3]), uav=2)
+        assert e.value.reason == reason, field
+    with pytest.raises(M.WireError) as e:
+        M.decode_input(M.encode_input(_input(rng), [1, 2]), uav=3)
+    assert e.value.reason == "wrong_uav"
+    with pytest.raises(M.WireError) as e:
+        M.decode_input(M.encode_input(_input(rng), [1, 2]), uav=2, min_k=5)
+    assert e.value.reason == "stale"
+
+
+def test_state_frame_exact():
+    rng = np.random.default_rng(8)
+    s = _state(rng)
+    s2 = M.decode_state(M.encode_state(s), uav=3, min_k=5)
+    assert np.array_equal(s.pos, s2.pos) and np.array_equal(s.pos_cov, s2.pos_cov) and np.array_equal(s.vel, s2.vel)
+    assert s2.delta_m == float("inf") and s2.ranges == s.ranges and list(s2.ranges) == sorted(s.ranges)
+    assert (s2.uav, s2.k, s2.r, s2.t) == (3, 5, 2, 5.0)
+
+
+def test_state_frame_rejects():
+    rng = np.random.default_rng(9)
+    s = _state(rng)
+    b = M.encode_state(s)
+    cases = [(b"{}", "malformed"), (b[:-1], "malformed"), (b[:3] + bytes([M.SCHEMA_VERSION + 1]) + b[4:], "version")]
+    for field, value in (("pos", np.array([np.nan, 0, 0])), ("delta_m", float("nan")), ("delta_m", -1.0)):
+        bad = _state(np.random.default_rng(9))
+        setattr(bad, field, value)
+        cases.append((M.encode_state(bad), "invalid"))
+    bad = _state(np.random.default_rng(9))
+    bad.ranges = {1: -3.0}
+    cases.append((M.encode_state(bad), "invalid"))
+    for payload, reason in cases:
+        with pytest.raises(M.WireError) as e:
+            M.decode_state(payload, uav=3)
+        assert e.value.reason == reason, (payload[:8], reason)
+    with pytest.raises(M.WireError) as e:
+        M.decode_state(b, uav=4)
+    assert e.value.reason == "wrong_uav"
+    with pytest.raises(M.WireError) as e:
+        M.decode_state(b, uav=3, min_k=6)
+    assert e.value.reason == "stale"

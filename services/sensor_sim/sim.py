@@ -1,8 +1,7 @@
 """sensor_sim: plays a dataset onto Zenoh, epoch by epoch, and keeps the swarm clock.
 
 For every epoch k and every participating UAV it publishes the EpochInput the in-process run
-would build (``EpochSlicer.epoch(k, uav)``), split over ``uav/<id>/{imu,gnss,uwb,rel}`` and closed
-by ``uav/<id>/epoch`` (which lists the parts and the epoch's participants = the UAV nodes live
+would build (``EpochSlicer.epoch(k, uav)``), as one binary frame on ``uav/<id>/input`` (with the epoch's participants = the UAV nodes live
 when the epoch opens). Truth goes to ``truth/<id>``, which nodes never subscribe to. It also
 answers ``meta`` (the dataset meta + seed) and ``uav/<id>/init`` (initial knowledge from
 ``initial_states(ds, seed)``; with ``?restart=1`` a fresh coarse alignment at the current epoch).
@@ -108,7 +107,7 @@ class SensorSim:
 
         bl = zenoh.CongestionControl.BLOCK
         self.pubs = {(u, t): self.s.declare_publisher(keys.uav(self.run, u, t), congestion_control=bl)
-                     for u in self.uavs for t in M.SENSOR_MSG}
+                     for u in self.uavs for t in keys.SENSOR_TOPICS}
         self.pub_truth = {u: self.s.declare_publisher(keys.truth(self.run, u), congestion_control=bl) for u in self.uavs}
         self.pub_clock = self.s.declare_publisher(keys.clock(self.run), congestion_control=bl)
         self.token = self.s.liveliness().declare_token(keys.alive(self.run, "sensor_sim", 0))
@@ -175,10 +174,12 @@ class SensorSim:
     def garbage(self, k: int) -> None:
         """Test hook: one bad message per key a node listens to (each must be rejected and counted)."""
         bad = [b"not json", b'{"v": 99}', json.dumps({"v": 1, "uav": 1, "k": k, "r": 0, "pos": [float("nan")] * 3}).encode()]
+        bad_input = b"SNI" + bytes([M.SCHEMA_VERSION + 1]) + bytes(8)  # a binary frame of an unknown version
+        bad_state = b"SNS" + bytes([M.SCHEMA_VERSION]) + bytes(13)  # a truncated state frame
         for u in self.uavs:
-            for i, topic in enumerate(M.SENSOR_MSG):
-                self.pubs[(u, topic)].put(bad[i % len(bad)])
-            self.s.put(keys.uav(self.run, u, "state"), bad[(u + 1) % len(bad)])
+            for i, payload in enumerate(bad + [bad_input]):
+                self.pubs[(u, "input")].put(payload)
+            self.s.put(keys.uav(self.run, u, "state"), bad_state)
         self.pub_clock.put(b'{"v": 1, "k": -3}')
         self.log.info("garbage published at epoch %d", k)
 
@@ -221,10 +222,9 @@ class SensorSim:
                 tm = M.TruthMsg(uav=u, k=k, t=t, pos=list(map(float, self.truth.pos[k - 1, j])),
                                 vel=list(map(float, self.truth.vel[k - 1, j])), quat=list(map(float, self.truth.quat[k - 1, j])))
                 self.pub_truth[u].put(tm.encode())
-                for topic, m in M.epoch_input_to_msgs(self.slicer.epoch(k, u), part).items():
-                    b = m.encode()
-                    self.bytes_per_uav += len(b)
-                    self.pubs[(u, topic)].put(b)
+                b = M.encode_input(self.slicer.epoch(k, u), part)
+                self.bytes_per_uav += len(b)
+                self.pubs[(u, "input")].put(b)
             if not a.rate:
                 self.wait_until(lambda: all(u in self.estimates.get(k, ()) or u not in self.alive_uav for u in part),
                                 a.epoch_timeout, f"estimates of epoch {k}")

@@ -5,8 +5,8 @@ Start-up: query the run's dataset meta and this UAV's initial knowledge from the
 settings as the in-process run; declare subscribers (own sensor keys, every peer's ``state``,
 liveliness, clock) and the ``state`` queryable; then declare the liveliness token.
 
-Epoch k: collect the imu/gnss/uwb/rel parts and the ``epoch`` tick (which lists the parts and the
-epoch's participants) into an EpochInput, then drive :func:`swarmnav.protocol.node_epoch`: publish
+Epoch k: the sensor-sim's ``input`` frame (one binary message: the EpochInput and the epoch's
+participants), then drive :func:`swarmnav.protocol.node_epoch`: publish
 each round's state, wait for the same round's state of every participant that is still live
 (liveliness), hand them to the generator sorted by id; publish the final estimate and links.
 A peer that is live is waited for; after ``peer_timeout_s`` its state is re-queried; a peer whose
@@ -25,6 +25,7 @@ from deploy.service import Deadline, Inbox, code_digest, finish_process, install
 from deploy.zconf import client_config
 from swarmnav.dataset import DatasetMeta
 from swarmnav.estimators import registry
+from swarmnav.estimators.base import NodeState
 from swarmnav.protocol import node_epoch
 from swarmnav.wire import keys
 from swarmnav.wire import messages as M
@@ -51,13 +52,16 @@ class Node:
         self.inbox = Inbox()
         self.rejects = M.Rejects(log)
         self.dead: set[int] = set()  # peers whose liveliness token went away (and did not come back)
-        self.parts: dict[int, dict[str, M.UavMsg]] = {}  # k -> topic -> msg
-        self.states: dict[tuple[int, int], dict[int, M.StateMsg]] = {}  # (k, r) -> uav -> state
-        self.history: deque[M.StateMsg] = deque(maxlen=HISTORY)
+        self.inputs: dict[int, tuple] = {}  # k -> (EpochInput, participants)
+        self.states: dict[tuple[int, int], dict[int, NodeState]] = {}  # (k, r) -> uav -> state
+        self.history: deque[bytes] = deque(maxlen=HISTORY)  # our last state frames
         self.est_history: deque[M.EstimateMsg] = deque(maxlen=5)
         self.k_done = 0  # last completed epoch
         self.done = False
         self.bytes_out = 0
+        self.waiting = None  # ((k, r), peers) the loop waits for in gather()
+        self.cpu_first = None  # process CPU time when the first epoch started
+        self.cpu_est = self.cpu_wait = 0.0  # process CPU inside the estimator / while gathering peer states
 
     # -- setup ---------------------------------------------------------------------------
     def query_one(self, key: str, cls, timeout: float, params: str = ""):
@@ -86,19 +90,24 @@ class Node:
         init = self.query_one(keys.uav(self.run, self.uav, "init"), M.InitMsg, a.startup_timeout,
                               "restart=1" if a.rejoin else "")
         self.est = registry.make_node(a.algo, self.uav, self.meta, self.settings, M.msg_to_init(init))
+        import zenoh
+
         ib = self.inbox
         self.subs = [
-            self.s.declare_subscriber(keys.uav_any(self.run, self.uav), ib.channel()),
-            self.s.declare_subscriber(keys.uav_all(self.run, "state"), ib.channel()),
+            self.s.declare_subscriber(keys.uav(self.run, self.uav, "input"), ib.channel()),
+            # peers only: our own publications are not echoed back to us
+            self.s.declare_subscriber(keys.uav_all(self.run, "state"), ib.channel(), allowed_origin=zenoh.Locality.REMOTE),
             self.s.declare_subscriber(keys.clock(self.run), ib.channel()),
             self.s.liveliness().declare_subscriber(keys.alive_all(self.run, "uav"), ib.channel(), history=True),
             self.s.declare_queryable(keys.uav(self.run, self.uav, "state"), ib.channel()),
         ]
         for tag, sub in zip(("own", "state", "clock", "alive", "query"), self.subs):
-            ib.attach(tag, sub)
+            ib.attach(tag, sub, direct=self.on_state if tag == "state" else None)
         self.pub_state = self.s.declare_publisher(keys.uav(self.run, self.uav, "state"))
-        self.pub_est = self.s.declare_publisher(keys.uav(self.run, self.uav, "estimate"))
-        self.pub_links = self.s.declare_publisher(keys.uav(self.run, self.uav, "links"))
+        # BLOCK: the monitor must record every estimate (a DROP publisher lost one under load)
+        bl = zenoh.CongestionControl.BLOCK
+        self.pub_est = self.s.declare_publisher(keys.uav(self.run, self.uav, "estimate"), congestion_control=bl)
+        self.pub_links = self.s.declare_publisher(keys.uav(self.run, self.uav, "links"), congestion_control=bl)
         self.token = self.s.liveliness().declare_token(keys.alive(self.run, "uav", self.uav))
         self.log.info("UAV %d up: algo %s, rounds %d, rejoin %s, code %s", self.uav, a.algo, self.rounds, a.rejoin,
                       self.code)
@@ -141,44 +150,53 @@ class Node:
             if c.done:
                 self.done = True
             return
-        if tag == "state":
-            if kk.uav == self.uav:
-                return  # our own publication
-            try:
-                m = M.decode(M.StateMsg, payload, uav=kk.uav, min_k=self.k_done + 1)
-            except M.WireError as e:
-                self.rejects.add("state", e)
-                return
-            self.states.setdefault((m.k, m.r), {})[m.uav] = m
+        if kk.topic != "input":
             return
-        # own inbox
-        if kk.topic not in M.SENSOR_MSG:
-            return  # our own state/estimate/links publications, or init
         try:
-            m = M.decode(M.SENSOR_MSG[kk.topic], payload, uav=self.uav, min_k=self.k_done + 1)
+            inp, part = M.decode_input(payload, uav=self.uav, min_k=self.k_done + 1)
         except M.WireError as e:
-            self.rejects.add(kk.topic, e)
+            self.rejects.add("input", e)
             return
-        self.parts.setdefault(m.k, {})[kk.topic] = m
+        self.inputs[inp.k] = (inp, part)
+
+    def on_state(self, item) -> bool:
+        """Peer state sample, in the state channel's pump thread (light: decode + store). True
+        (wake the loop) when the round the loop waits for is complete, or on a reject."""
+        try:
+            kk = keys.parse(str(item.key_expr))
+        except ValueError as e:
+            self.rejects.add(str(item.key_expr), M.WireError("bad_key", str(e)))
+            return False
+        if kk.uav == self.uav:
+            return False  # our own publication
+        try:
+            m = M.decode_state(item.payload.to_bytes(), uav=kk.uav, min_k=self.k_done + 1)
+        except M.WireError as e:
+            self.rejects.add("state", e)
+            return False
+        have = self.states.setdefault((m.k, m.r), {})
+        have[m.uav] = m
+        w = self.waiting
+        return w is not None and w[0] == (m.k, m.r) and w[1] <= have.keys()
 
     def answer(self, q):
         """State queryable: ``?k=K;r=R`` -> that state if held, else the latest states + estimates."""
         try:
             params = {p.split("=")[0]: p.split("=")[1] for p in str(q.parameters).split(";") if "=" in p}
-            hist = list(self.history)
+            hist = [M.decode_state(b) for b in self.history]
             if "k" in params and "r" in params:
                 k, r = int(params["k"]), int(params["r"])
                 hist = [s for s in hist if s.k == k and s.r == r]
-            msg = M.HistoryMsg(uav=self.uav, states=hist, estimates=list(self.est_history))
+            msg = M.HistoryMsg(uav=self.uav, states=[M.state_to_msg(s) for s in hist], estimates=list(self.est_history))
             q.reply(keys.uav(self.run, self.uav, "state"), msg.encode())
         except Exception as e:  # a bad query must not kill the node
             self.rejects.add("query", M.WireError("bad_query", str(e)))
         finally:
             q.drop()
 
-    def pump(self, timeout: float) -> bool:
+    def pump(self, timeout: float, clear: bool = True) -> bool:
         """Handle one inbox item (waiting up to timeout). False when stopping."""
-        it = self.inbox.get(timeout)
+        it = self.inbox.get(timeout, clear)
         if it is not None:
             self.handle(*it)
             # drain whatever else is queued without blocking
@@ -191,15 +209,10 @@ class Node:
 
     # -- epoch ---------------------------------------------------------------------------
     def ready_epoch(self):
-        for k in sorted(self.parts):
-            p = self.parts[k]
-            ep = p.get("epoch")
-            if ep is not None and all(t in p for t in ep.parts):
-                return k
-        return None
+        return min(self.inputs) if self.inputs else None
 
     def publish(self, pub, msg) -> None:
-        b = msg.encode()
+        b = msg if isinstance(msg, bytes) else msg.encode()
         self.bytes_out += len(b)
         pub.put(b)
 
@@ -212,21 +225,24 @@ class Node:
                     h = M.decode(M.HistoryMsg, rep.ok.payload.to_bytes(), uav=u)
                     for s in h.states:
                         if s.k == k and s.r == r:
-                            self.states.setdefault((k, r), {})[u] = s
+                            self.states.setdefault((k, r), {})[u] = M.msg_to_state(s)
             except M.WireError as e:
                 self.rejects.add("state-query", e)
 
-    def gather(self, k: int, r: int, participants: set[int]) -> dict[int, M.StateMsg]:
+    def gather(self, k: int, r: int, participants: set[int]) -> dict[int, NodeState]:
         """Wait for state (k, r) of every participant still live; re-query after peer_timeout."""
         t0 = time.monotonic()
         requeried = 0.0
         while True:
+            self.inbox.ev.clear()  # before looking: a wake-up from here on is not lost
             have = self.states.get((k, r), {})
             # a participant is waited for until its liveliness token goes away (the sensor-sim saw
             # it live when it opened the epoch, so a token we have not seen yet is not a death)
             expect = participants - self.dead - {self.uav}
+            self.waiting = ((k, r), expect)  # the state pump wakes us once all of these are in
             missing = sorted(expect - set(have))
             if not missing:
+                self.waiting = None
                 break
             waited = time.monotonic() - t0
             if waited > self.peer_timeout * 10:
@@ -237,48 +253,54 @@ class Node:
                 self.requery(k, r, missing)
                 requeried = waited
                 continue
-            if not self.pump(0.2):
+            if not self.pump(0.2, clear=False):
                 raise KeyboardInterrupt
+        self.waiting = None
         have = self.states.get((k, r), {})
         return {u: have[u] for u in sorted(have) if u in participants and u != self.uav}
 
     def run_epoch(self, k: int, first: bool) -> None:
-        parts = self.parts.pop(k)
-        ep: M.EpochMsg = parts["epoch"]
-        participants = set(ep.participants)
-        inp = M.msgs_to_epoch_input(parts)
+        inp, part = self.inputs.pop(k)
+        participants = set(part)
         if first and self.a.rejoin:
             peers = self.bootstrap_peers()
             self.log.info("bootstrapping at epoch %d from peers %s", k, sorted(peers))
             self.est.bootstrap(inp.t_prev, peers, inp)
         bytes0 = self.bytes_out
         wait = 0.0
+        c0 = time.process_time()
         gen = node_epoch(self.est, inp, self.rounds, self.tol)
         state = next(gen)
+        self.cpu_est += time.process_time() - c0
         used: set[int] = set()
         try:
             while True:
-                sm = M.state_to_msg(state)
-                self.history.append(sm)
-                self.publish(self.pub_state, sm)
+                frame = M.encode_state(state)
+                self.history.append(frame)  # the bytes sent (a snapshot), decoded only for a query
+                self.publish(self.pub_state, frame)
                 t0 = time.monotonic()
+                c0 = time.process_time()
                 got = self.gather(k, state.r, participants)
+                c1 = time.process_time()
+                self.cpu_wait += c1 - c0
                 wait += time.monotonic() - t0
                 used |= set(got)
-                state = gen.send({u: M.msg_to_state(m) for u, m in got.items()})
+                state = gen.send(got)
+                self.cpu_est += time.process_time() - c1
         except StopIteration as stop:
             est = stop.value
         em = M.estimate_to_msg(est, wait_ms=wait * 1e3, peers=sorted(used), bytes_out=0)
+        links = M.LinksMsg(uav=self.uav, k=k, links=em.links).encode()
         size = len(em.encode())
-        em.bytes_out = self.bytes_out - bytes0 + size + len(M.LinksMsg(uav=self.uav, k=k, links=em.links).encode())
+        em.bytes_out = self.bytes_out - bytes0 + size + len(links)
         self.est_history.append(em)
-        self.publish(self.pub_links, M.LinksMsg(uav=self.uav, k=k, links=em.links))
+        self.publish(self.pub_links, links)
         self.publish(self.pub_est, em)
         self.k_done = k
-        for key in [kr for kr in self.states if kr[0] <= k]:
+        for key in [kr for kr in list(self.states) if kr[0] <= k]:  # list(): the state pump inserts concurrently
             del self.states[key]
-        for kk in [x for x in self.parts if x <= k]:
-            del self.parts[kk]
+        for kk in [x for x in self.inputs if x <= k]:
+            del self.inputs[kk]
 
     def bootstrap_peers(self):
         peers = {}
@@ -304,10 +326,11 @@ class Node:
         while not self.inbox.stop.is_set():
             k = self.ready_epoch()
             if k is not None:
-                ep = self.parts[k]["epoch"]
-                if self.uav not in ep.participants:
-                    self.parts.pop(k)
+                if self.uav not in self.inputs[k][1]:
+                    self.inputs.pop(k)
                     continue
+                if first:
+                    self.cpu_first = time.process_time()
                 self.run_epoch(k, first)
                 first = False
                 continue
@@ -336,6 +359,10 @@ def main(argv=None) -> int:
             node.inbox.stop.set()
             log.info("UAV %d exiting after epoch %d; rejected messages: %d %s", args.uav, node.k_done,
                      node.rejects.total, node.rejects.as_dict())
+            cpu, c0 = time.process_time(), getattr(node, "cpu_first", None)
+            log.info("CPU %.2f s (start-up %s s, epochs %s s: estimator %.2f s, gathering peer states %.2f s)", cpu,
+                     "-" if c0 is None else f"{c0:.2f}", "-" if c0 is None else f"{cpu - c0:.2f}", node.cpu_est,
+                     node.cpu_wait)
             for s in getattr(node, "subs", []):
                 try:
                     s.undeclare()

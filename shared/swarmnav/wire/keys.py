@@ -5,11 +5,8 @@ Grammar (``<run>`` is the run id, ``<id>`` a UAV id as a decimal integer >= 1)::
     swarmnav/<run>/meta                      queryable (sensor-sim): DatasetMeta of the run
     swarmnav/<run>/clock                     sensor-sim -> all: epoch k starts (participants), or done
     swarmnav/<run>/uav/<id>/init             queryable (sensor-sim): initial knowledge of UAV <id>
-    swarmnav/<run>/uav/<id>/imu              sensor-sim -> node <id>: IMU batch of epoch k
-    swarmnav/<run>/uav/<id>/gnss             sensor-sim -> node <id>: GNSS fix at epoch k (if any)
-    swarmnav/<run>/uav/<id>/uwb              sensor-sim -> node <id>: UWB ranges of epoch k
-    swarmnav/<run>/uav/<id>/rel              sensor-sim -> node <id>: relative az/el of epoch k
-    swarmnav/<run>/uav/<id>/epoch            sensor-sim -> node <id>: epoch tick (closes epoch k's inputs)
+    swarmnav/<run>/uav/<id>/input            sensor-sim -> node <id>: all of epoch k's inputs in one binary
+                                             frame (IMU batch, GNSS fix, UWB ranges, az/el, participants)
     swarmnav/<run>/uav/<id>/state            node <id> -> peers: state of (epoch k, round r);
                                              also a queryable: latest state / short history
     swarmnav/<run>/uav/<id>/estimate         node <id> -> monitor, sensor-sim: final estimate of epoch k
@@ -24,11 +21,12 @@ concrete key into a :class:`Key` so ``parse(build(...)) == ...`` (tests/test_key
 
 from __future__ import annotations
 
+import functools
 import re
 from dataclasses import dataclass
 
 ROOT = "swarmnav"
-SENSOR_TOPICS = ("imu", "gnss", "uwb", "rel", "epoch")
+SENSOR_TOPICS = ("input",)
 NODE_TOPICS = ("state", "estimate", "links")
 UAV_TOPICS = SENSOR_TOPICS + NODE_TOPICS + ("init",)
 SERVICES = ("uav", "sensor_sim", "monitor", "launcher")
@@ -124,7 +122,17 @@ def everything(run: str) -> str:
 # -- parser ----------------------------------------------------------------------------------
 
 
-def parse(key: str) -> Key:
+@functools.lru_cache(maxsize=4096)
+def _parse_cached(key: str) -> Key:
+    return _parse(key)
+
+
+def parse(key) -> Key:
+    """Parse a concrete key of the grammar (cached); raises KeyError_ on anything else."""
+    return _parse_cached(str(key))
+
+
+def _parse(key: str) -> Key:
     """Parse a concrete key of the grammar; raises KeyError_ on anything else."""
     parts = str(key).split("/")
     if len(parts) < 3 or parts[0] != ROOT or not _RUN_RE.match(parts[1]):

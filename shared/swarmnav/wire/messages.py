@@ -9,6 +9,12 @@ still accept; anything malformed (not JSON, wrong shape, unknown field), of an u
 out of range (NaN/inf, negative range or sigma, bad ids) or about the wrong UAV or a stale epoch
 raises :class:`WireError`. Services count and log those with :class:`Rejects` and keep running.
 This module is pure (no zenoh); converters map messages to/from the core's dataclasses.
+
+On the wire since schema version 2 the two bulky kinds are binary frames (end of this module):
+the sensor input of a UAV's epoch (one ``input`` frame: a pydantic-validated JSON header + float64
+/int64 arrays checked with numpy) and the peer state of a round (a fixed struct + float64 array).
+The per-part JSON models (ImuMsg, GnssMsg, UwbMsg, RelMsg, EpochMsg) and StateMsg remain for
+tests and for the state queryable's JSON history replies.
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from ..dataset import EpochInput
 from ..estimators.base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeState
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: binary input/state frames (below); JSON messages unchanged otherwise
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False)]
@@ -45,7 +51,7 @@ class WireError(ValueError):
 
 class Msg(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, ser_json_inf_nan="constants", strict=False)
-    v: Literal[1] = SCHEMA_VERSION
+    v: Literal[SCHEMA_VERSION] = SCHEMA_VERSION
 
     def encode(self) -> bytes:
         return self.model_dump_json().encode()
@@ -369,3 +375,160 @@ def msgs_to_epoch_input(parts: dict[str, UavMsg]) -> EpochInput:
 
 
 SENSOR_MSG: dict[str, type[UavMsg]] = {"imu": ImuMsg, "gnss": GnssMsg, "uwb": UwbMsg, "rel": RelMsg, "epoch": EpochMsg}
+
+
+# -- binary frames for the bulky per-epoch traffic ---------------------------------------------
+#
+# The two message kinds that dominate the traffic travel as binary frames instead of JSON:
+#
+# * ``uav/<id>/input`` (sensor-sim -> node): ONE message per UAV and epoch with the whole
+#   EpochInput. Frame: ``b"SNI"`` + version byte, uint32 LE length of a JSON header (an
+#   :class:`InputHeader`, pydantic-validated: ids, times, participants, GNSS fix, altitude and the
+#   array lengths), then the arrays as little-endian float64/int64 in :data:`_INPUT_F` /
+#   :data:`_INPUT_I` order. The arrays are validated with numpy after decoding (finite, ranges
+#   >= 0, sigmas > 0, ids >= 0, no self-ranging or self-observation).
+# * ``uav/<id>/state`` (node -> peers, 4 rounds per epoch): ``b"SNS"`` + version byte, int32 LE
+#   uav, k, r, uint32 n (ranges), float64 LE [t, pos(3), pos_cov(9, row-major), vel(3), delta_m,
+#   range values(n)], int64 LE range peer ids(n). Decoded straight into the core's NodeState.
+#
+# float64 bytes are copied, so values arrive bit-identical (as with the JSON repr before).
+# The state queryable's history replies stay JSON (:class:`HistoryMsg`, rare).
+
+import struct  # noqa: E402
+
+_STATE_MAGIC = b"SNS"
+_INPUT_MAGIC = b"SNI"
+_STATE_HDR = struct.Struct("<3sBiiiI")
+_INPUT_HDR = struct.Struct("<3sBI")
+_STATE_NF = 18  # t, pos 3, cov 9, vel 3, delta_m, then n range values
+
+
+def _check_magic(payload: bytes, magic: bytes, min_len: int) -> None:
+    if not isinstance(payload, (bytes, bytearray, memoryview)) or len(payload) < min_len or payload[:3] != magic:
+        raise WireError("malformed", f"not a {magic.decode()} frame")
+    if payload[3] != SCHEMA_VERSION:
+        raise WireError("version", f"schema version {payload[3]!r}, expected {SCHEMA_VERSION}")
+
+
+def encode_state(s: NodeState) -> bytes:
+    ids = sorted(int(o) for o in s.ranges)
+    f = np.empty(_STATE_NF + len(ids), np.float64)
+    f[0] = s.t
+    f[1:4] = np.asarray(s.pos, np.float64).ravel()
+    f[4:13] = np.asarray(s.pos_cov, np.float64).ravel()
+    f[13:16] = np.asarray(s.vel, np.float64).ravel()
+    f[16] = s.delta_m
+    f[17] = 0.0  # reserved (keeps the id block 8-byte aligned either way)
+    f[_STATE_NF:] = [s.ranges[o] for o in ids]
+    return (_STATE_HDR.pack(_STATE_MAGIC, SCHEMA_VERSION, int(s.uav), int(s.k), int(s.r), len(ids))
+            + f.astype("<f8", copy=False).tobytes() + np.asarray(ids, "<i8").tobytes())
+
+
+def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = None) -> NodeState:
+    """Binary state frame -> NodeState; WireError(malformed|version|invalid|wrong_uav|stale)."""
+    _check_magic(payload, _STATE_MAGIC, _STATE_HDR.size)
+    _, _, u, k, r, n = _STATE_HDR.unpack_from(payload)
+    if len(payload) != _STATE_HDR.size + 8 * (_STATE_NF + n) + 8 * n:
+        raise WireError("malformed", f"state frame of {len(payload)} bytes for {n} ranges")
+    f = np.frombuffer(payload, "<f8", _STATE_NF + n, _STATE_HDR.size).astype(np.float64)
+    ids = np.frombuffer(payload, "<i8", n, _STATE_HDR.size + 8 * (_STATE_NF + n))
+    if u < 1 or k < 0 or r < 0:
+        raise WireError("invalid", f"ids uav {u} k {k} r {r}")
+    if not (np.isfinite(f[:16]).all() and np.isfinite(f[_STATE_NF:]).all()):
+        raise WireError("invalid", "non-finite value")
+    if np.isnan(f[16]) or f[16] < 0 or (n and (f[_STATE_NF:].min() < 0 or ids.min() < 0)):
+        raise WireError("invalid", "negative range/delta or id")
+    if uav is not None and u != uav:
+        raise WireError("wrong_uav", f"message about UAV {u} on UAV {uav}'s key")
+    if min_k is not None and k < min_k:
+        raise WireError("stale", f"epoch {k} < {min_k}")
+    return NodeState(uav=u, k=k, r=r, t=float(f[0]), pos=f[1:4].copy(), pos_cov=f[4:13].reshape(3, 3).copy(),
+                     vel=f[13:16].copy(), delta_m=float(f[16]), ranges=dict(zip(ids.tolist(), f[_STATE_NF:].tolist())))
+
+
+class GnssPart(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    pos: Vec3
+    vel: Vec3
+    pos_sigma: Annotated[list[Pos], Field(min_length=3, max_length=3)]
+    vel_sigma: Pos
+
+
+class InputHeader(UavMsg):
+    """JSON header of the binary ``input`` frame (one per UAV and epoch)."""
+
+    t: Finite
+    t_prev: Finite
+    participants: list[UavId]
+    altitude: Finite | None = None
+    altitude_sigma: Pos | None = None
+    gnss: GnssPart | None = None
+    n_imu: int = Field(ge=0)
+    n_range: int = Field(ge=0)
+    n_rel: int = Field(ge=0)
+
+
+# (name, columns) of the float64 and int64 blocks; lengths: n_imu, n_range or n_rel rows
+_INPUT_F = (("imu_t", "n_imu", 1), ("gyro", "n_imu", 3), ("accel", "n_imu", 3), ("range_t", "n_range", 1),
+            ("range_m", "n_range", 1), ("range_sigma", "n_range", 1), ("rel_az", "n_rel", 1), ("rel_el", "n_rel", 1),
+            ("rel_sigma", "n_rel", 1))
+_INPUT_I = (("range_other", "n_range"), ("range_tag_self", "n_range"), ("range_tag_other", "n_range"), ("rel_target", "n_rel"))
+
+
+def encode_input(inp: EpochInput, participants: list[int]) -> bytes:
+    g = None
+    if inp.gnss_pos is not None:
+        g = GnssPart(pos=_f(inp.gnss_pos), vel=_f(inp.gnss_vel), pos_sigma=_f(inp.gnss_pos_sigma), vel_sigma=float(inp.gnss_vel_sigma))
+    h = InputHeader(uav=inp.uav, k=inp.k, t=inp.t, t_prev=inp.t_prev, participants=sorted(int(p) for p in participants),
+                    altitude=inp.altitude, altitude_sigma=inp.altitude_sigma, gnss=g, n_imu=len(inp.imu_t),
+                    n_range=len(inp.range_t), n_rel=len(inp.rel_target)).encode()
+    body = [np.ascontiguousarray(getattr(inp, name), "<f8").tobytes() for name, _, _ in _INPUT_F]
+    body += [np.ascontiguousarray(getattr(inp, name), "<i8").tobytes() for name, _ in _INPUT_I]
+    return _INPUT_HDR.pack(_INPUT_MAGIC, SCHEMA_VERSION, len(h)) + h + b"".join(body)
+
+
+def decode_input(payload: bytes, *, uav: int | None = None, min_k: int | None = None) -> tuple[EpochInput, list[int]]:
+    """Binary input frame -> (EpochInput, participants); WireError on anything malformed or out of range."""
+    _check_magic(payload, _INPUT_MAGIC, _INPUT_HDR.size)
+    _, _, hl = _INPUT_HDR.unpack_from(payload)
+    o = _INPUT_HDR.size + hl
+    h: InputHeader = decode(InputHeader, bytes(payload[_INPUT_HDR.size:o]), uav=uav, min_k=min_k)
+    n = {"n_imu": h.n_imu, "n_range": h.n_range, "n_rel": h.n_rel}
+    nf = sum(n[c] * w for _, c, w in _INPUT_F)
+    ni = sum(n[c] for _, c in _INPUT_I)
+    if len(payload) != o + 8 * (nf + ni):
+        raise WireError("malformed", f"input frame of {len(payload)} bytes, header says {o + 8 * (nf + ni)}")
+    f = np.frombuffer(payload, "<f8", nf, o).astype(np.float64)
+    i = np.frombuffer(payload, "<i8", ni, o + 8 * nf).astype(np.int64)
+    if not np.isfinite(f).all():
+        raise WireError("invalid", "non-finite value in the input arrays")
+    a: dict[str, np.ndarray] = {}
+    p = 0
+    for name, c, w in _INPUT_F:
+        m = n[c] * w
+        a[name] = f[p:p + m].reshape(-1, 3) if w == 3 else f[p:p + m]
+        p += m
+    p = 0
+    for name, c in _INPUT_I:
+        a[name] = i[p:p + n[c]]
+        p += n[c]
+    if h.n_range and (a["range_m"].min() < 0 or a["range_sigma"].min() <= 0 or a["range_other"].min() < 0
+                      or a["range_tag_self"].min() < 0 or a["range_tag_other"].min() < 0):
+        raise WireError("invalid", "negative range, sigma or id")
+    if h.n_rel and (a["rel_sigma"].min() <= 0 or a["rel_target"].min() < 1):
+        raise WireError("invalid", "non-positive sigma or bad target id")
+    if (a["range_other"] == h.uav).any() or (a["rel_target"] == h.uav).any():
+        raise WireError("invalid", "a UAV cannot range to or observe itself")
+    inp = EpochInput(uav=h.uav, k=h.k, t=h.t, t_prev=h.t_prev, imu_t=a["imu_t"], gyro=a["gyro"], accel=a["accel"],
+                     altitude=h.altitude, altitude_sigma=h.altitude_sigma)
+    if h.gnss is not None:
+        g = h.gnss
+        inp.gnss_pos, inp.gnss_vel = np.array(g.pos, np.float64), np.array(g.vel, np.float64)
+        inp.gnss_pos_sigma, inp.gnss_vel_sigma = np.array(g.pos_sigma, np.float64), g.vel_sigma
+    if h.n_range:
+        inp.range_t, inp.range_other, inp.range_tag_self, inp.range_tag_other = (a["range_t"], a["range_other"],
+                                                                                 a["range_tag_self"], a["range_tag_other"])
+        inp.range_m, inp.range_sigma = a["range_m"], a["range_sigma"]
+    if h.n_rel:
+        inp.rel_target, inp.rel_az, inp.rel_el, inp.rel_sigma = a["rel_target"], a["rel_az"], a["rel_el"], a["rel_sigma"]
+    return inp, list(h.participants)
