@@ -72,30 +72,86 @@ def test_noiseless_smoke_near_zero_error(noiseless, algo):
     assert rmse < 0.05, f"{algo}: noiseless RMSE {rmse:.4f} m"
 
 
+def _pin_fixed(graph, est_values):
+    """Keys ISAM2 holds at a frozen linearisation point (its ``fixedVariables_``: the neighbours of
+    marginalised variables, i.e. the keys of the marginal LinearContainerFactors), pinned by tight
+    priors at the smoother's estimate."""
+    fixed = set()
+    for i in range(graph.size()):
+        f = graph.at(i)
+        if isinstance(f, gtsam.LinearContainerFactor):
+            fixed |= set(f.keys())
+    g = gtsam.NonlinearFactorGraph(graph)
+    for k in sorted(fixed):
+        c = chr(gtsam.Symbol(k).chr())
+        if c == "x":
+            g.add(gtsam.PriorFactorPose3(k, est_values.atPose3(k), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+        elif c == "v":
+            g.add(gtsam.PriorFactorVector(k, est_values.atVector(k), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
+        elif c == "b":
+            g.add(gtsam.PriorFactorConstantBias(k, est_values.atConstantBias(k), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    return g, fixed
+
+
+def _lm(graph, init):
+    p = gtsam.LevenbergMarquardtParams()
+    p.setLinearSolverType("MULTIFRONTAL_QR")  # the stiff bias blocks: Cholesky can report indeterminate
+    p.setRelativeErrorTol(1e-12)
+    p.setAbsoluteErrorTol(1e-12)
+    p.setMaxIterations(200)
+    return gtsam.LevenbergMarquardtOptimizer(graph, init, p).optimize()
+
+
 def test_fixed_lag_matches_batch_solve():
-    """The smoother's estimate equals a batch LM solve of the same factors (small problem)."""
+    """The smoother's estimate equals a batch solve of the same factors (small problem).
+
+    The smoother's graph (``getFactors``) holds every factor the estimator added — own IMU/GNSS
+    (scaled sigmas), the per-epoch cooperative summary factors (× commit weight) and, with
+    marginalisation, the marginal LinearContainerFactors.
+    * lag 100 s (no marginalisation): a full nonlinear batch LM agrees to 2 cm.
+    * lag 4 s: (a) the smoother's estimate is exactly one Gauss–Newton step of that graph from the
+      smoother's linearisation point (same factors, same weights: ~1e-9 m); (b) a batch LM of the
+      graph with the variables ISAM2 keeps at a frozen linearisation point (neighbours of the
+      marginalised variables) pinned at the smoother's values agrees to < 1 cm (measured ≤ 1.6 mm).
+      An unpinned batch differs by up to 0.23 m (UAV 3; UAV 1: 5° of yaw on the oldest pose): it
+      relinearises the factors on those boundary variables, which ISAM2 by design never does after
+      marginalisation (it keeps the marginal factor consistent); a lower relinearisation threshold
+      does not close it (0.29 m at threshold 0). That gap is the smoother's approximation, not a
+      factor mismatch; it is reported, and held to a loose sanity bound of 0.5 m.
+    """
     sc = load_config("configs/smoke.toml")
     d = sc.model_dump()
     d["scenario"]["duration_s"] = 12.0
     sc = parse_config(d)
     ds = simulate(sc, 2)
-    for lag in (100.0, 4.0):  # no marginalisation / with marginalisation (linear container factors)
+    for lag in (100.0, 4.0):
         _, _, nodes = _run(ds, FgEstimator, 2, _settings(sc, fixed_lag_s=lag))
         for est in nodes.values():
             sm = est.smoother
             graph = sm.getFactors()
             lin = sm.getLinearizationPoint()
-            batch = gtsam.LevenbergMarquardtOptimizer(graph, lin).optimize()
-            for _ in range(5):  # ISAM2 does one relinearisation per update: iterate to convergence
+            p = lambda v: v.atPose3(X(est.n)).translation()  # noqa: E731
+            if lag > 50:
+                batch = gtsam.LevenbergMarquardtOptimizer(graph, lin).optimize()
+                for _ in range(5):  # ISAM2 does one relinearisation per update: iterate to convergence
+                    sm.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
+                gap = np.linalg.norm(p(batch) - p(sm.calculateEstimate()))
+                assert gap < 0.02, (lag, est.uav, gap)
+                continue
+            gp = gtsam.GaussNewtonParams()
+            gp.setLinearSolverType("MULTIFRONTAL_QR")
+            gp.setMaxIterations(1)
+            gn1 = gtsam.GaussNewtonOptimizer(graph, lin, gp).optimize()
+            assert np.linalg.norm(p(gn1) - p(sm.calculateEstimate())) < 1e-6, (lag, est.uav)
+            for _ in range(5):
                 sm.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
             isam = sm.calculateEstimate()
-            p_b = batch.atPose3(X(est.n)).translation()
-            p_i = isam.atPose3(X(est.n)).translation()
-            # without marginalisation: agree to 2 cm. With it, the batch solve relinearises factors
-            # whose variables ISAM2 keeps near the marginal factors' frozen linearisation point;
-            # measured up to ~7 cm (not fully explained) -> 0.1 m bound.
-            tol = 0.02 if lag > 50 else 0.1
-            assert np.linalg.norm(p_b - p_i) < tol, (lag, est.uav, p_b, p_i)
+            pinned, fixed = _pin_fixed(graph, isam)
+            assert fixed, "lag 4 s over 12 s must have marginalised something"
+            gap_pinned = np.linalg.norm(p(_lm(pinned, isam)) - p(isam))
+            gap_full = np.linalg.norm(p(_lm(graph, lin)) - p(isam))
+            assert gap_pinned < 0.01, (lag, est.uav, gap_pinned)
+            assert gap_full < 0.5, (lag, est.uav, gap_full)
 
 
 def test_atvfg_nees_on_smoke():

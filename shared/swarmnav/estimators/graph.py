@@ -99,6 +99,10 @@ class GraphEstimator(NodeEstimator):
         ci = s.get("neighbour_cov_inflation", 1.0 if self.bcast_cov == "own" else "links")
         self.cov_infl = None if ci == "links" else float(ci)  # None: per sender, its number of links
         self.gn_iters = int(s.get("gn_iterations", 2))
+        # ISAM2 relinearises a variable only when its delta exceeds this (any component: rad, m,
+        # m/s, bias units); below it the smoother's estimate is one Gauss-Newton step from a stale
+        # linearisation point (tests/test_graph.py::test_fixed_lag_matches_batch_solve)
+        self.relin_thresh = float(s.get("relinearize_threshold", 0.05))
         self.sticky = bool(s.get("sticky_detection", False))
         self.eq24_on = str(s.get("eq24_applies_to", "squared"))  # "residual" (eq. 25) | "squared"
         # K-means pool: fixed window if residual_window_epochs > 1, else adaptive (>= 16 residuals,
@@ -134,7 +138,7 @@ class GraphEstimator(NodeEstimator):
 
     def _new_smoother(self, t, pose, vel, pos_sigma, vel_sigma, att_sigma):
         p = gtsam.ISAM2Params()
-        p.setRelinearizeThreshold(0.05)
+        p.setRelinearizeThreshold(self.relin_thresh)
         p.relinearizeSkip = 1
         p.setFactorization("QR")
         sm = gtsam.IncrementalFixedLagSmoother(self.lag, p)
