@@ -169,3 +169,18 @@ def test_atvfg_nees_on_smoke():
         vals.append(nees)
     m = float(np.mean(np.concatenate(vals)))
     assert 1.0 <= m <= 9.0, f"mean NEES {m:.2f}"
+
+
+def test_bootstrap_moves_gnss_fix_back_to_restart_time():
+    """A restarted node is reset at t_prev; the epoch's GNSS fix is at t: moved back by vel·(t − t_prev)."""
+    sc = load_config("configs/smoke.toml")
+    ds = simulate(sc, 1)
+    sl = EpochSlicer(ds)
+    k, u = 20, 3
+    inp = sl.epoch(k, u)
+    assert inp.gnss_pos is not None and inp.gnss_vel is not None
+    est = FgEstimator(u, ds.meta, _settings(sc), initial_states(ds, 1)[u])
+    est.bootstrap(inp.t_prev, {}, inp)
+    want = np.asarray(inp.gnss_pos) - np.asarray(inp.gnss_vel) * (inp.t - inp.t_prev)
+    assert np.allclose(est.pose.translation(), want, atol=1e-9)
+    assert est.t == inp.t_prev

@@ -228,10 +228,6 @@ def test_dropout_and_rejoin(smoke, drop, truth):
     _clean_exit(drop)
 
 
-@pytest.mark.xfail(reason="estimator (graph.py) bootstrap places the GNSS fix of t_k at t_(k-1): the restarted node "
-                          "starts one epoch of motion ahead (~13 m on smoke) and is still ~1.7 m off (normal ~0.4 m) "
-                          "30 epochs later. Verified remedy (in-process emulation): bootstrap with gnss_pos - gnss_vel * "
-                          "(t - t_prev) -> 1.6 m at the rejoin, 0.4 m five epochs later", strict=False)
 def test_rejoined_error_normal_within_30_epochs(base, drop, truth):
     t = drop["est"]["t"]
     j = list(drop["est"]["uavs"]).index(2)

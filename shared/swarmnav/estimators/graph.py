@@ -461,7 +461,8 @@ class GraphEstimator(NodeEstimator):
     # -- restart -----------------------------------------------------------------------------
 
     def bootstrap(self, t: float, peers: dict[int, NodeState], inp: EpochInput | None) -> None:
-        """Re-initialise a restarted node at time ``t``: position from GNSS if present, else a
+        """Re-initialise a restarted node at time ``t``: position from GNSS if present (the fix of
+        ``inp.t`` moved back to ``t`` along the GNSS velocity), else a
         multilateration on the peers' states with this epoch's ranges (else the peers' centroid);
         velocity from GNSS or the peers' mean; attitude level with yaw along the velocity (a
         coarse alignment: roll/pitch σ 0.5°, yaw σ 10°)."""
@@ -469,6 +470,12 @@ class GraphEstimator(NodeEstimator):
         if inp is not None and inp.gnss_pos is not None:
             pos = np.asarray(inp.gnss_pos, float)
             pos_sigma = np.sqrt(np.asarray(inp.gnss_pos_sigma, float) ** 2 + self.gnss_extra_var)
+            # the fix is at the end of the epoch (inp.t), the node restarts at t (= inp.t_prev when
+            # the service rejoins): move it back along the GNSS velocity, else the node starts one
+            # epoch of motion ahead (~15 m on smoke)
+            dt = float(inp.t) - float(t)
+            if dt > 0 and inp.gnss_vel is not None:
+                pos = pos - np.asarray(inp.gnss_vel, float) * dt
         elif peers:
             pos = np.mean([s.pos for s in peers.values()], axis=0)
             if inp is not None:
