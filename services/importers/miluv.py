@@ -41,6 +41,17 @@ MAX_TILT_DEG = 45.0  # mocap attitudes tilted more than this are marker-swap gli
 GYRO_BIAS_SIGMA = 0.005  # rad/s, turn-on bias prior (not in config/imu; PX4 calibrates the gyro at boot)
 ACCEL_BIAS_SIGMA = 0.3  # m/s^2, turn-on bias prior (not in config/imu; MEMS datasheet order ~30 mg)
 INIT = {"vel_sigma_mps": 0.05, "roll_pitch_sigma_deg": 3.0, "yaw_sigma_deg": 3.0}
+# Coarse alignment (initial.py ``init.level_window_s``): roll/pitch from each UAV's own accelerometer
+# over the first LEVEL_WINDOW_S s, set only if every UAV is at rest then by its IMU alone (gyro-norm
+# std and specific-force-norm std below these, mean |f| within LEVEL_MAX_G_DEV of g).
+LEVEL_WINDOW_S = 1.0
+LEVEL_MAX_GYRO_STD = 0.01  # rad/s
+LEVEL_MAX_ACC_STD = 0.1  # m/s^2
+LEVEL_MAX_G_DEV = 0.3  # m/s^2
+# In-flight accelerometer white noise from the recording itself (no mocap): vibration = the signal
+# minus its VIB_SMOOTH_S moving average, while the rangefinder says airborne; density = per-sample
+# RMS std / sqrt(rate). Used when above the at-rest Allan value.
+VIB_SMOOTH_S = 0.2
 
 _ROBOT_RE = re.compile(r"^ifo0*(\d+)$")
 
@@ -340,6 +351,22 @@ def convert(src: str | Path, epoch_dt: float = 0.1) -> tuple[Dataset, dict]:
             valid = h > HEIGHT_MIN_VALID_M
             height[uid] = (t[valid], h[valid] - hb)
             summary.setdefault("height_dropped_at_sensor_floor", {})[name] = int((~valid).sum())
+        # in-flight accelerometer noise (vibration) measured from the IMU while the rangefinder reads airborne
+        hv = height.get(uid)
+        if hv is not None and len(hv[0]) > 100:
+            ti, acc = imu[uid][0], imu[uid][1][:, 3:6]
+            air = (ti >= hv[0][0]) & (ti <= hv[0][-1])
+            rate = 1.0 / float(np.median(np.diff(ti)))
+            nwin = max(3, int(round(VIB_SMOOTH_S * rate)))
+            kern = np.ones(nwin) / nwin
+            hf = np.column_stack([acc[:, j] - np.convolve(acc[:, j], kern, "same") for j in range(3)])[air][nwin:-nwin]
+            sd = float(np.sqrt(np.mean(np.var(hf, axis=0))))
+            dens = sd / math.sqrt(rate)
+            summary.setdefault("accel_in_flight", {})[name] = {"vibration_std_mps2": round(sd, 3),
+                                                              "density": round(dens, 4),
+                                                              "allan_density": imu_noise[uid].accel_noise_density}
+            if dens > imu_noise[uid].accel_noise_density:
+                imu_noise[uid].accel_noise_density = dens
     if glitches:
         summary["mocap_attitude_glitches_interpolated"] = glitches
 
@@ -368,6 +395,15 @@ def convert(src: str | Path, epoch_dt: float = 0.1) -> tuple[Dataset, dict]:
         imu_stats[uid] = {"samples": int(len(t)), "rate_hz_median": round(float(1 / np.median(dt)), 1),
                           "max_gap_s": round(float(dt.max()), 4), "gaps_over_20ms": int((dt > 0.02).sum())}
     summary["imu"] = imu_stats
+    # at rest over the first LEVEL_WINDOW_S s (IMU only)? -> coarse alignment of roll/pitch in initial.py
+    at_rest = {}
+    for uid, (t, d) in sorted(imu.items()):
+        m = (t >= t_start) & (t <= t_start + LEVEL_WINDOW_S)
+        gn, fn = np.linalg.norm(d[m, 0:3], axis=1), np.linalg.norm(d[m, 3:6], axis=1)
+        at_rest[uid] = bool(m.sum() > 10 and gn.std() < LEVEL_MAX_GYRO_STD and fn.std() < LEVEL_MAX_ACC_STD
+                            and abs(fn.mean() - GRAVITY_MPS2) < LEVEL_MAX_G_DEV)
+    level = all(at_rest.values())
+    summary["level_at_start"] = {str(u): v for u, v in at_rest.items()}
     imu_tab = _sorted_table("imu", np.concatenate(it), np.concatenate(iu), np.vstack(idata))
 
     # -- truth on a grid: epoch times exactly, TRUTH_SUBSTEPS per epoch --------------------------
@@ -515,7 +551,7 @@ def convert(src: str | Path, epoch_dt: float = 0.1) -> tuple[Dataset, dict]:
         rel_sigma_rad=None,
         fault_threshold_m=threshold,
         events=[],
-        init=dict(INIT),
+        init=dict(INIT, **({"level_window_s": LEVEL_WINDOW_S} if level else {})),
     )
     tables = {"truth": truth_tab, "imu": imu_tab, "ranges": ranges_tab}
     if alt_tab is not None:
