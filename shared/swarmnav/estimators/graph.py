@@ -21,11 +21,17 @@ Epoch k (driven by ``swarmnav.protocol``):
     (and eq. 27 az/el) factors to the neighbours, whose broadcast positions enter with their
     covariance marginalised into each factor's noise ("factor to an uncertain neighbour",
     factors.effective_range_sigma). Cheap: ~0.1 ms, no smoother work per round.
+    **Rounds approach the joint snapshot solution** (default ``round_cov_inflation`` 0.5): in the
+    round solve a neighbour's broadcast covariance is scaled by 0.5 (not by the double-counting
+    inflation below), so the swarm's rounds behave like a block-Jacobi iteration on the epoch's joint
+    problem (all local priors + all links); consistency across epochs is left to the commit.
 ``end_epoch``
-    commit once: the cooperative factors, linearised at the converged position, are summarised as
-    one Gaussian position factor (information Λ = Σ w JᵀJ/s², mean from the gradient) and added to
-    the smoother; one update; NodeEstimate with the smoother's pose/velocity, pos_cov =
-    (P_loc⁻¹ + Λ)⁻¹, link classes and the thresholds.
+    commit once: the cooperative factors, linearised at the final round position and recomputed
+    with the conservative double-counting inflation, are summarised as one Gaussian position factor
+    (information Λ_c = Σ w JᵀJ/s² × commit_weight, mean from the gradient) and added to the smoother;
+    one update. NodeEstimate (default ``report = "round"``): position = the last round's solution,
+    pos_cov = (P_loc⁻¹ + Λ_c)⁻¹ (conservative), velocity/attitude from the smoother
+    (``report = "smoother"``: the smoother's position, the former behaviour).
 
 **Double counting.** A neighbour's estimate already contains this node's information. Remedy
 (opt-in ``broadcast_cov = "own"``, documented and measured in docs/estimators.md; the default is
@@ -99,6 +105,19 @@ class GraphEstimator(NodeEstimator):
         ci = s.get("neighbour_cov_inflation", 1.0 if self.bcast_cov == "own" else "links")
         self.cov_infl = None if ci == "links" else float(ci)  # None: per sender, its number of links
         self.gn_iters = int(s.get("gn_iterations", 2))
+        # joint-snapshot rounds (opt-in): the per-round solve uses the neighbours' broadcasts with
+        # round_cov_inflation (None = the commit's inflation above) and damping; the commit then
+        # ("commit_mean" = "joint") moves the smoother's mean to the round solution with the
+        # conservative (commit-inflation) information, instead of fusing the summary's own mean
+        ri = s.get("round_cov_inflation", 0.5)
+        self.round_infl = None if ri is None or ri == "" else float(ri)
+        self.damping = float(s.get("round_damping", 1.0))
+        self.commit_mean = str(s.get("commit_mean", "summary"))
+        # what the epoch's estimate reports: "smoother" (after the commit) or "round" (the last
+        # round's cooperative solution, with covariance "commit" = (P_loc⁻¹ + w·Λ_commit)⁻¹ or
+        # "round" = (P_loc⁻¹ + Λ_round)⁻¹)
+        self.report = str(s.get("report", "round"))
+        self.report_cov = str(s.get("report_cov", "commit"))
         # ISAM2 relinearises a variable only when its delta exceeds this (any component: rad, m,
         # m/s, bias units); below it the smoother's estimate is one Gauss-Newton step from a stale
         # linearisation point (tests/test_graph.py::test_fixed_lag_matches_batch_solve)
@@ -333,7 +352,7 @@ class GraphEstimator(NodeEstimator):
                         res_own[o] = (res_own[o][0], min(c, res_own[o][1]))
         self._weights, self._res_own, self._nb = weights, res_own, nb
         self._peers = peers
-        self._prepare_links()
+        self._L = self._prepare_links(self.round_infl)
         p_prev = self.p.copy()
         p = self.p.copy()
         for _ in range(self.gn_iters):
@@ -342,6 +361,8 @@ class GraphEstimator(NodeEstimator):
             p = p + dp
             if np.linalg.norm(dp) < 1e-4:
                 break
+        if self.damping != 1.0 and r > 1:
+            p = p_prev + self.damping * (p - p_prev)
         self.p = p
         self._links_ready = True
         s = NodeState(self.uav, self.k, r, self.t, p.copy(), self._broadcast_cov(), self.vel.copy(),
@@ -349,8 +370,10 @@ class GraphEstimator(NodeEstimator):
         self._last_state = s
         return s
 
-    def _prepare_links(self):
-        """Arrays of this round's active links (weights > 0) for the Gauss-Newton solve."""
+    def _prepare_links(self, infl: float | None = None):
+        """Arrays of this round's active links (weights > 0) for the Gauss-Newton solve; neighbour
+        covariances × ``infl`` (None: the double-counting inflation ``_infl``)."""
+        fi = self._infl if infl is None else (lambda o: infl)
         inp, peers = self.inp, self._peers
         Rm = self.pose.rotation().matrix()
         rows, pj, Pj, w = [], [], [], []
@@ -362,7 +385,7 @@ class GraphEstimator(NodeEstimator):
             for i in self._rows[o]:
                 rows.append(i)
                 pj.append(s.pos)
-                Pj.append(s.pos_cov * self._infl(o))
+                Pj.append(s.pos_cov * fi(o))
                 w.append(wo)
         L = {}
         if rows:
@@ -376,10 +399,10 @@ class GraphEstimator(NodeEstimator):
             if idx:
                 tg = [int(inp.rel_target[i]) for i in idx]
                 st = np.array([inp.rel_sigma[i] if inp.rel_sigma[i] > 0 else self.rel_sigma for i in idx])
-                L["azel"] = (np.array([peers[o].pos for o in tg]), np.array([peers[o].pos_cov * self._infl(o) for o in tg]),
+                L["azel"] = (np.array([peers[o].pos for o in tg]), np.array([peers[o].pos_cov * fi(o) for o in tg]),
                              np.array([self._weights.get(o, 1.0) for o in tg]), st ** 2,
                              np.column_stack([inp.rel_az[idx], inp.rel_el[idx]]))
-        self._L = L
+        return L
 
     def _infl(self, o: int) -> float:
         """Covariance inflation of neighbour o's broadcast (double-counting remedy): by default the
@@ -389,13 +412,13 @@ class GraphEstimator(NodeEstimator):
             return self.cov_infl
         return float(max(1, self.peer_links.get(o, 1)))
 
-    def _normal_equations(self, p: np.ndarray, coop_only: bool = False):
+    def _normal_equations(self, p: np.ndarray, coop_only: bool = False, L: dict | None = None):
         """Gauss-Newton normal equations (H, g) of prior + cooperative factors at own position p."""
         if coop_only:
             H, gv = np.zeros((3, 3)), np.zeros(3)
         else:
             H, gv = self._info.copy(), self._info @ (self.p_loc - p)
-        L = self._L
+        L = self._L if L is None else L
         if "rng" in L:
             pj, Pj, w, lev, sig2, z = L["rng"]
             d = p + lev - pj
@@ -434,18 +457,28 @@ class GraphEstimator(NodeEstimator):
     def end_epoch(self) -> NodeEstimate:
         links: list[LinkInfo] = []
         pos_cov = self.P_loc
+        pos = None
         if self.cooperative and self._links_ready:
-            Lam, gsum = self._normal_equations(self.p, coop_only=True)
+            Lc = self._L if self.round_infl is None else self._prepare_links(None)
+            Lam, gsum = self._normal_equations(self.p, coop_only=True, L=Lc)
             if np.trace(Lam) > 0 and self.commit_weight > 0:
                 Lam, gsum = Lam * self.commit_weight, gsum * self.commit_weight
                 Lr = Lam + 1e-8 * np.eye(3)
-                z = self.p + np.linalg.solve(Lr, gsum)
+                if self.commit_mean == "joint":
+                    # posterior mean of X(n) = the round solution p (linear fusion with P_loc)
+                    z = self.p + np.linalg.solve(Lr, self._info @ (self.p - self.p_loc))
+                else:
+                    z = self.p + np.linalg.solve(Lr, gsum)
                 Lr = 0.5 * (Lr + Lr.T)
                 g = gtsam.NonlinearFactorGraph()
                 g.add(gtsam.GPSFactor(X(self.n), z, gtsam.noiseModel.Gaussian.Information(Lr)))
                 self.smoother.update(g, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
                 self._read_estimate()
                 pos_cov = np.linalg.inv(self._info + Lam)
+                if self.report == "round":
+                    pos = self.p.copy()
+                    if self.report_cov == "round":
+                        pos_cov = np.linalg.inv(self._normal_equations(self.p)[0])
             for o in self._nb:
                 res, cls = self._res_own.get(o, (float("nan"), int(LinkClass.H2_NORMAL)))
                 links.append(LinkInfo(o, LinkClass(cls), res, float(self._weights[o])))
@@ -453,7 +486,8 @@ class GraphEstimator(NodeEstimator):
                 self.window.push(self._final_res)
         self._links_ready = False
         q = self.pose.rotation().toQuaternion()
-        return NodeEstimate(self.uav, self.k, self.t, self.pose.translation().copy(), self.vel.copy(),
+        pos = self.pose.translation().copy() if pos is None else pos
+        return NodeEstimate(self.uav, self.k, self.t, pos, self.vel.copy(),
                             0.5 * (pos_cov + pos_cov.T), np.array([q.w(), q.x(), q.y(), q.z()]), links,
                             delta_h_m=self.delta_h if self.detect else None,
                             delta_l_m=self.delta_l if self.detect else None)
