@@ -110,6 +110,29 @@ def finish_process(inbox: Inbox, log: logging.Logger, rc: int) -> int:
     return rc
 
 
+def undeclare_all(subs) -> None:
+    """Undeclare every subscriber/queryable in ``subs`` before the session closes; one that is
+    already gone (undeclared, or its channel closed with the session) is skipped."""
+    for s in subs:
+        try:
+            s.undeclare()
+        except Exception:  # already undeclared / session closing: nothing left to release
+            pass
+
+
+def parse_key(key_expr, rejects):
+    """``keys.parse`` of a received sample's or query's key; a malformed key is counted in ``rejects``
+    (``swarmnav.wire.messages.Rejects``) as ``bad_key`` and gives None."""
+    from swarmnav.wire import keys
+    from swarmnav.wire import messages as M
+
+    try:
+        return keys.parse(str(key_expr))
+    except ValueError as e:
+        rejects.add(str(key_expr), M.WireError("bad_key", str(e)))
+        return None
+
+
 def install_signals(inbox: Inbox) -> None:
     def handler(signum, frame):
         inbox.stop.set()

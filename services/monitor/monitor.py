@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deploy.service import Inbox, finish_process, install_signals, setup_logging
+from deploy.service import Inbox, finish_process, install_signals, parse_key, setup_logging, undeclare_all
 from deploy.zconf import client_config
 from swarmnav.dataset import Dataset
 from swarmnav.estimators import registry
@@ -106,10 +106,8 @@ class Monitor:
     def handle(self, tag, item):
         if tag == "_wake":
             return
-        try:
-            kk = keys.parse(str(item.key_expr))
-        except ValueError as e:
-            self.rejects.add(str(item.key_expr), M.WireError("bad_key", str(e)))
+        kk = parse_key(item.key_expr, self.rejects)
+        if kk is None:
             return
         if tag == "alive":
             import zenoh
@@ -309,10 +307,6 @@ def main(argv=None) -> int:
             mon.loop()
         finally:
             mon.inbox.stop.set()
-            for s in getattr(mon, "subs", []):
-                try:
-                    s.undeclare()
-                except Exception:
-                    pass
+            undeclare_all(getattr(mon, "subs", []))
             mon.finish()
     return finish_process(mon.inbox, log, 0)

@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from deploy.service import Deadline, Inbox, finish_process, install_signals, setup_logging
+from deploy.service import Deadline, Inbox, finish_process, install_signals, parse_key, setup_logging, undeclare_all
 from deploy.zconf import client_config
 from swarmnav.dataset import Dataset, EpochSlicer
 from swarmnav.evaluation import truth_at_epochs
@@ -132,10 +132,8 @@ class SensorSim:
             finally:
                 item.drop()
             return
-        try:
-            kk = keys.parse(str(item.key_expr))
-        except ValueError as e:
-            self.rejects.add(str(item.key_expr), M.WireError("bad_key", str(e)))
+        kk = parse_key(item.key_expr, self.rejects)
+        if kk is None:
             return
         if tag == "alive":
             import zenoh
@@ -257,9 +255,5 @@ def main(argv=None) -> int:
             rc = 0
         finally:
             sim.inbox.stop.set()
-            for s in getattr(sim, "subs", []):
-                try:
-                    s.undeclare()
-                except Exception:
-                    pass
+            undeclare_all(getattr(sim, "subs", []))
     return finish_process(sim.inbox, log, rc) if sim is not None else rc

@@ -21,7 +21,8 @@ import os
 import time
 from collections import deque
 
-from deploy.service import Deadline, Inbox, code_digest, finish_process, install_signals, setup_logging
+from deploy.service import (Deadline, Inbox, code_digest, finish_process, install_signals, parse_key, setup_logging,
+                            undeclare_all)
 from deploy.zconf import client_config
 from swarmnav.dataset import DatasetMeta
 from swarmnav.estimators import registry
@@ -162,10 +163,8 @@ class Node:
     def on_state(self, item) -> bool:
         """Peer state sample, in the state channel's pump thread (light: decode + store). True
         (wake the loop) when the round the loop waits for is complete, or on a reject."""
-        try:
-            kk = keys.parse(str(item.key_expr))
-        except ValueError as e:
-            self.rejects.add(str(item.key_expr), M.WireError("bad_key", str(e)))
+        kk = parse_key(item.key_expr, self.rejects)
+        if kk is None:
             return False
         if kk.uav == self.uav:
             return False  # our own publication
@@ -363,9 +362,5 @@ def main(argv=None) -> int:
             log.info("CPU %.2f s (start-up %s s, epochs %s s: estimator %.2f s, gathering peer states %.2f s)", cpu,
                      "-" if c0 is None else f"{c0:.2f}", "-" if c0 is None else f"{cpu - c0:.2f}", node.cpu_est,
                      node.cpu_wait)
-            for s in getattr(node, "subs", []):
-                try:
-                    s.undeclare()
-                except Exception:
-                    pass
+            undeclare_all(getattr(node, "subs", []))
     return finish_process(node.inbox, log, rc) if node is not None else rc
