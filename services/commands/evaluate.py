@@ -100,7 +100,7 @@ def _limit_threads():
         from threadpoolctl import threadpool_limits
 
         threadpool_limits(1)
-    except Exception:  # noqa: BLE001 - optional
+    except ImportError:  # threadpoolctl comes with scikit-learn; OMP_NUM_THREADS=1 is set anyway
         pass
 
 

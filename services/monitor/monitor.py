@@ -172,13 +172,25 @@ class Monitor:
         self.positions.setdefault(m.k, {})[m.uav] = e.pos
         self.pending_links.setdefault(m.k, []).extend((m.uav, li.other, int(li.cls)) for li in e.links)
 
-    def flush_epochs(self, upto: int):
+    def epoch_complete(self, k: int) -> bool:
+        """True when every live UAV's estimate of epoch k has been received."""
+        got = np.all(np.isfinite(self.res.pos[k - 1]), axis=1)
+        return all(got[self.uavs.index(u)] for u in self.alive if u in self.uavs)
+
+    def flush_epochs(self, upto: int, force: bool = False):
         """Close epochs up to ``upto``: their swarm error series and link graph are final. Rows go
         to the recording in column batches (``send_columns``) every FLUSH_EVERY closed epochs and at
-        :meth:`finish` (also on SIGTERM): one ``rr.log`` per UAV and epoch cost ~34 ms per epoch."""
+        :meth:`finish` (also on SIGTERM): one ``rr.log`` per UAV and epoch cost ~34 ms per epoch.
+
+        The clock and the estimates arrive on different pump threads, so the clock of epoch k+1 can
+        be handled before the last estimate of epoch k: the newest epoch ``upto`` is closed only once
+        every live UAV's estimate is in; otherwise it waits for the next clock (or ``force``)."""
         a = self.a.algo
         while self.logged_k < min(upto, self.K):
-            k = self.logged_k = self.logged_k + 1
+            k = self.logged_k + 1
+            if k == upto and not force and not self.epoch_complete(k):
+                break
+            self.logged_k = k
             i = k - 1
             ep = self.res.pos[i] - self.truth.pos[i]
             ev = self.res.vel[i] - self.truth.vel[i]
@@ -285,7 +297,7 @@ class Monitor:
 
     def finish(self):
         try:
-            self.flush_epochs(self.K)
+            self.flush_epochs(self.K, force=True)
             self.send_batch()
             rep = self.report()
             self.log.info("report written: %s 3-D pos RMSE %s", self.a.algo,
