@@ -184,3 +184,52 @@ def test_bootstrap_moves_gnss_fix_back_to_restart_time():
     want = np.asarray(inp.gnss_pos) - np.asarray(inp.gnss_vel) * (inp.t - inp.t_prev)
     assert np.allclose(est.pose.translation(), want, atol=1e-9)
     assert est.t == inp.t_prev
+
+
+def test_initial_rest_detector_ends_on_smooth_acceleration():
+    """The zero-velocity prior of the initial rest phase holds while the IMU is still and ends
+    when it is not — also for a smooth acceleration (no spread within an epoch, |f| ≈ g), which
+    the integrated velocity change relative to the first epoch's specific force catches."""
+    import dataclasses
+    from swarmnav.dataset import EpochInput
+
+    sc = load_config("configs/smoke.toml")
+    ds = simulate(sc, 1)
+    u = ds.meta.uav_ids()[0]
+    init = initial_states(ds, 1)[u]
+    moving = InsEstimator(u, ds.meta, _settings(sc), dataclasses.replace(init, vel=np.array([5.0, 0, 0]), vel_sigma=0.1))
+    assert not moving._at_rest  # a node that starts moving never gets the prior
+    est = InsEstimator(u, ds.meta, _settings(sc), dataclasses.replace(init, vel=np.zeros(3), vel_sigma=0.05))
+    assert est._at_rest
+    g0 = float(np.linalg.norm(est.params.n_gravity))
+    rng = np.random.default_rng(0)
+
+    def epoch(k, a_h):
+        t = np.arange(100) * 0.01 + (k - 1)
+        f = np.tile([a_h, 0.0, g0], (100, 1)) + rng.normal(0, 0.005, (100, 3))
+        return EpochInput(u, k, float(k), float(k - 1), t, rng.normal(0, 1e-4, (100, 3)), f)
+
+    assert all(est._still(epoch(k, 0.0)) for k in (1, 2, 3))
+    # 0.2 m/s² forward: ~0.002 m/s² change of |f|, no spread; caught by the velocity integral
+    still = [est._still(epoch(k, 0.2)) for k in (4, 5)]
+    assert still == [False, False] or still == [True, False]
+
+
+def test_anchor_range_time_shift_moves_anchor_by_velocity():
+    """An anchor range taken at t_r < t is fused as a range from p(t) to anchor + v·(t − t_r)."""
+    sc = load_config("configs/smoke.toml")
+    ds = simulate(sc, 1)
+    u = ds.meta.uav_ids()[0]
+    est = InsEstimator(u, ds.meta, _settings(sc), initial_states(ds, 1)[u])
+    est.anchors = {100: np.array([10.0, 0.0, 0.0])}
+    est.tags = {0: np.zeros(3)}
+    est._v_pred = np.array([2.0, 0.0, 0.0])
+    from swarmnav.dataset import EpochInput
+    inp = EpochInput(u, 1, 1.0, 0.9, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)),
+                     range_t=np.array([0.95]), range_other=np.array([100]), range_tag_self=np.array([0]),
+                     range_tag_other=np.array([0]), range_m=np.array([10.0]), range_sigma=np.array([0.1]))
+    g = gtsam.NonlinearFactorGraph()
+    est._add_anchor_ranges(g, X(0), inp)
+    v = gtsam.Values()
+    v.insert(X(0), gtsam.Pose3(gtsam.Rot3(), np.array([0.1, 0.0, 0.0])))  # p(t); at t_r it was 0.0
+    assert g.error(v) < 1e-12  # |p(t) − (anchor + v·0.05)| = |0.1 − 10.1| = 10 = measured

@@ -5,6 +5,14 @@ One local graph per UAV, bounded cost via ``gtsam.IncrementalFixedLagSmoother`` 
 (zero-order-hold preintegration, ``imu.py``); GNSS position (``GPSFactor``) and velocity priors;
 known-anchor ranges (real data) and altitude; prior from :class:`InitialState`.
 
+Own-factor details for sparse ranging without GNSS (docs/miluv.md, "Third pass"): an anchor range
+taken at t_r inside the epoch is fused at the epoch time t with the anchor moved by v_pred·(t − t_r)
+(``anchor_time_shift``, default on); a node that starts at rest (|init.vel|, init.vel_sigma ≤
+``rest_max_speed_mps``) holds a zero-velocity prior (``zupt_sigma_mps``) until its IMU first shows
+motion (``_still``; ``initial_rest_zupt``, default on). Opt-in and measured worse on MILUV: an
+innovation gate of anchor ranges against the predicted covariance (``anchor_gate_p``) and a
+redescending anchor kernel (``anchor_kernel`` cauchy/tukey/gm; default huber, k 3).
+
 Epoch k (driven by ``swarmnav.protocol``):
 
 ``begin_epoch``
@@ -148,6 +156,27 @@ class GraphEstimator(NodeEstimator):
         if role_scale is not None:
             self.gnss_scale = float(role_scale)
         self.own_cov_scale = float((settings or {}).get("own_cov_scale", 1.0))
+        # initial rest phase (zero-velocity prior): a node that starts at rest (|init.vel| and
+        # init.vel_sigma <= rest_max_speed) holds V = 0 until its IMU first shows motion
+        self.zupt_sigma = float(s.get("zupt_sigma_mps", 0.02))
+        self.rest_max_speed = float(s.get("rest_max_speed_mps", 0.1))
+        self.rest_gyro_std = float(s.get("rest_gyro_std", 0.01))
+        self.rest_accel_std = float(s.get("rest_accel_std", 0.1))
+        self._rest_f0, self._rest_dv = None, np.zeros(3)
+        self._at_rest = (bool(s.get("initial_rest_zupt", True)) and float(init.vel_sigma) <= self.rest_max_speed
+                         and float(np.linalg.norm(init.vel)) <= self.rest_max_speed)
+        self.anchor_time_shift = bool(s.get("anchor_time_shift", True))
+        # robust kernel of the known-anchor ranges (whitened threshold k)
+        self.anchor_kernel = str(s.get("anchor_kernel", "huber"))
+        self.anchor_kernel_k = float(s.get("anchor_kernel_k", 3.0))
+        # anchor-range innovation gate (χ²₁ probability; 0 = off)
+        self.anchor_gate_p = float(s.get("anchor_gate_p", 0.0))
+        self.anchor_gate_max_reject = int(s.get("anchor_gate_max_reject", 3))
+        self._gate_rejects = 0
+        self.gate_log = []
+        if self.anchor_gate_p > 0:
+            from scipy.stats import chi2
+            self._gate_thr = float(chi2.ppf(self.anchor_gate_p, 1))
         imu = node.imu
         self.bias_sigmas = np.r_[[max(imu.accel_bias_sigma, 1e-4)] * 3, [max(imu.gyro_bias_sigma, 1e-6)] * 3]
         self._reset(init.t, init.pos, init.vel, init.quat, np.asarray(init.pos_sigma, float),
@@ -199,6 +228,7 @@ class GraphEstimator(NodeEstimator):
         self.P_loc = np.diag(np.maximum(pos_sigma, 1e-3) ** 2)
         self.P_own = self.P_loc.copy()
         self.p = self.p_loc.copy()
+        self._v_pred = self.vel.copy()
         self._links_ready = False
 
     # -- epoch -------------------------------------------------------------------------------
@@ -220,7 +250,11 @@ class GraphEstimator(NodeEstimator):
                                           gtsam.noiseModel.Isotropic.Sigma(3, float(inp.gnss_vel_sigma))))
         if inp.altitude is not None:
             g.add(self._altitude_factor(X(n), inp.altitude, inp.altitude_sigma or 0.1))
-        self._add_anchor_ranges(g, X(n), inp)
+        if self._at_rest and not self._still(inp):
+            self._at_rest = False  # first motion: the initial rest phase is over for good
+        if self._at_rest:
+            g.add(gtsam.PriorFactorVector(V(n), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, self.zupt_sigma)))
+        self._v_pred = np.asarray(pred.velocity(), float)
         v = gtsam.Values()
         v.insert(X(n), pred.pose())
         v.insert(V(n), pred.velocity())
@@ -228,7 +262,19 @@ class GraphEstimator(NodeEstimator):
         ts = gtsam.FixedLagSmootherKeyTimestampMap()
         for key in (X(n), V(n), B(n)):
             ts.insert((key, inp.t))
-        self.smoother.update(g, v, ts)
+        if self.anchor_gate_p > 0 and self._has_anchor_ranges(inp):
+            # innovation gate: predict X(n) (IMU + the epoch's other own factors), test each anchor
+            # range against the predicted covariance, then add only the consistent ones
+            self.smoother.update(g, v, ts)
+            g2 = gtsam.NonlinearFactorGraph()
+            self._add_anchor_ranges(g2, X(n), inp, gate=True)
+            if g2.size():
+                self.smoother.update(g2, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
+                for i in range(g2.size()):
+                    g.add(g2.at(i))
+        else:
+            self._add_anchor_ranges(g, X(n), inp)
+            self.smoother.update(g, v, ts)
         if self.own is not None:
             po = self.pim.predict(gtsam.NavState(self.own_pose, self.own_vel), self.own_bias)
             vo = gtsam.Values()
@@ -282,20 +328,81 @@ class GraphEstimator(NodeEstimator):
 
         return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, float(sigma)), [key], err)
 
-    def _add_anchor_ranges(self, g, key, inp: EpochInput):
+    def _has_anchor_ranges(self, inp: EpochInput) -> bool:
+        return bool(self.anchors) and len(inp.range_other) > 0 and bool(np.isin(inp.range_other, list(self.anchors)).any())
+
+    def _add_anchor_ranges(self, g, key, inp: EpochInput, gate: bool = False):
         if not self.anchors or len(inp.range_other) == 0:
             return
         m = np.isin(inp.range_other, list(self.anchors))
         if not m.any():
             return
         pts = np.array([self.anchors[int(o)] for o in inp.range_other[m]])
+        if self.anchor_time_shift and len(inp.range_t) == len(inp.range_m):
+            # a range taken at t_r < t: the tag was at p(t) − v·(t − t_r); equivalently the anchor
+            # is moved by +v·(t − t_r) (v = the IMU prediction's velocity)
+            pts = pts + np.outer(float(inp.t) - inp.range_t[m], self._v_pred)
         levers = np.array([self.tags.get(int(t), np.zeros(3)) for t in inp.range_tag_self[m]])
         sig = np.where(inp.range_sigma[m] > 0, inp.range_sigma[m], self.uwb_sigma)
-        f = stacked_range_factor(key, pts, inp.range_m[m], sig, levers)
+        z = inp.range_m[m]
+        if gate:
+            ok = self._anchor_gate(key, pts, levers, z, sig)
+            if not ok.any():
+                return
+            pts, levers, sig, z = pts[ok], levers[ok], sig[ok], z[ok]
+        f = stacked_range_factor(key, pts, z, sig, levers)
         # anchors are known, not broadcast: a Huber kernel (k = 3 sigma, whitened) guards NLOS
-        huber = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(3.0),
-                                               gtsam.noiseModel.Unit.Create(int(m.sum())))
+        me = gtsam.noiseModel.mEstimator
+        kern = {"huber": me.Huber, "cauchy": me.Cauchy, "tukey": me.Tukey, "gm": me.GemanMcClure}[self.anchor_kernel]
+        huber = gtsam.noiseModel.Robust.Create(kern.Create(self.anchor_kernel_k),
+                                               gtsam.noiseModel.Unit.Create(len(z)))
         g.add(gtsam.CustomFactor(huber, [key], _unwrap_error(f)))
+
+    def _still(self, inp: EpochInput) -> bool:
+        """IMU-only rest test: within the epoch, gyro-norm and specific-force-norm spreads small,
+        mean rate below ``rest_gyro_std``, |mean |f| − g| < 3·rest_accel_std; and across epochs
+        the velocity change integrated from the specific force relative to the first epoch's mean
+        (f0) stays below ``rest_max_speed`` (a smooth acceleration has no spread but shows here)."""
+        if len(inp.gyro) < 2:
+            return True
+        wn = np.linalg.norm(inp.gyro, axis=1)
+        fn = np.linalg.norm(inp.accel, axis=1)
+        g0 = float(np.linalg.norm(self.params.n_gravity))
+        if not (wn.std() < self.rest_gyro_std and wn.mean() < self.rest_gyro_std
+                and fn.std() < self.rest_accel_std and abs(fn.mean() - g0) < 3 * self.rest_accel_std):
+            return False
+        f = np.asarray(inp.accel, float)
+        if self._rest_f0 is None:
+            self._rest_f0 = f.mean(axis=0)
+        dt = np.diff(np.r_[np.asarray(inp.imu_t, float), float(inp.t)])
+        self._rest_dv = self._rest_dv + ((f - self._rest_f0) * dt[:, None]).sum(axis=0)
+        return bool(np.linalg.norm(self._rest_dv) < self.rest_max_speed)
+
+    def _anchor_gate(self, key, pts, levers, z, sig) -> np.ndarray:
+        """χ²₁ test of each anchor range's innovation against the predicted covariance of X(n)
+        (position block; S = uᵀPu + σ²). After ``anchor_gate_max_reject`` consecutive rejections
+        the next range is accepted whatever its innovation (the prediction is then suspect)."""
+        est = self.smoother.calculateEstimate()
+        P = est.atPose3(key)
+        Rm = P.rotation().matrix()
+        cov = self.smoother.marginalCovariance(key)
+        Pp = Rm @ cov[3:, 3:] @ Rm.T
+        d = P.translation() + levers @ Rm.T - pts
+        r = np.sqrt(np.einsum("ij,ij->i", d, d))
+        u = d / np.maximum(r, 1e-9)[:, None]
+        S = np.einsum("ni,ij,nj->n", u, Pp, u) + sig ** 2
+        nu = z - r
+        ok = nu * nu / S <= self._gate_thr
+        for i in range(len(ok)):
+            if ok[i]:
+                self._gate_rejects = 0
+            else:
+                self._gate_rejects += 1
+                if self._gate_rejects > self.anchor_gate_max_reject:
+                    ok[i] = True
+                    self._gate_rejects = 0
+        self.gate_log.append((self.t, int(len(ok)), int((~ok).sum())))
+        return ok
 
     def _own_ranges(self, inp: EpochInput):
         """Inter-UAV ranges this node took part in: per other UAV, the mean and the tag offsets."""
