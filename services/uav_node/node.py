@@ -162,7 +162,8 @@ class Node:
 
     def on_state(self, item) -> bool:
         """Peer state sample, in the state channel's pump thread (light: decode + store). True
-        (wake the loop) when the round the loop waits for is complete, or on a reject."""
+        (wake the loop) only when the round the loop waits for is complete; a rejected sample is
+        counted and returns False (nothing new to act on)."""
         kk = parse_key(item.key_expr, self.rejects)
         if kk is None:
             return False
