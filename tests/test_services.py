@@ -89,7 +89,7 @@ def _in_process_dropout(dataset, uav, t_kill, t_restart):
     from swarmnav.estimators import registry
     from swarmnav.evaluation import truth_at_epochs
     from swarmnav.initial import initial_states
-    from swarmnav.protocol import node_epoch
+    from swarmnav.protocol import node_epoch, run_epoch_in_process
 
     ds = Dataset.read(dataset)
     meta, uavs, K = ds.meta, ds.meta.uav_ids(), ds.meta.n_epochs()
@@ -107,16 +107,8 @@ def _in_process_dropout(dataset, uav, t_kill, t_restart):
             nodes[uav].bootstrap(inp.t_prev, {u: s for u, s in sorted(last.items()) if u != uav}, inp)
         part = [u for u in uavs if u != uav or not (t_kill <= t < t_restart)]
         gens = {u: node_epoch(nodes[u], sl.epoch(k, u), rounds, tol) for u in part}
-        states = {u: next(g) for u, g in gens.items()}
-        while gens:
-            snap = dict(states)
-            for u, g in list(gens.items()):
-                try:
-                    states[u] = g.send({j: s for j, s in snap.items() if j != u})
-                except StopIteration as stop:
-                    pos[k - 1, uavs.index(u)] = stop.value.pos
-                    del gens[u]
-        last.update({u: snap[u] for u in part})
+        for u, est in run_epoch_in_process(gens, last_states=last).items():
+            pos[k - 1, uavs.index(u)] = est.pos
     return pos
 
 

@@ -54,11 +54,13 @@ def node_epoch(est: NodeEstimator, inp: EpochInput, rounds: int, tol_m: float) -
     return out
 
 
-def run_epoch_in_process(epochs: dict[int, NodeEpoch]) -> dict[int, NodeEstimate]:
+def run_epoch_in_process(epochs: dict[int, NodeEpoch],
+                         last_states: dict[int, NodeState] | None = None) -> dict[int, NodeEstimate]:
     """In-memory transport: drive every live node's epoch generator in lock-step rounds.
 
     Every node receives all other live nodes' states of the same round (a broadcast bus).
-    Iteration is in UAV-id order; the result does not depend on it.
+    Iteration is in UAV-id order; the result does not depend on it. If ``last_states`` is given,
+    it is filled with each node's last broadcast state of the epoch (what a peer could query).
     """
     states: dict[int, NodeState] = {u: next(g) for u, g in sorted(epochs.items())}
     active = dict(sorted(epochs.items()))
@@ -70,6 +72,8 @@ def run_epoch_in_process(epochs: dict[int, NodeEpoch]) -> dict[int, NodeEstimate
                 states[u] = g.send({j: s for j, s in snapshot.items() if j != u})
             except StopIteration as stop:
                 results[u] = stop.value
+                if last_states is not None:
+                    last_states[u] = snapshot[u]
                 del active[u]
                 states.pop(u, None)
     return results
