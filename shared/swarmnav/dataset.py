@@ -94,6 +94,10 @@ class Node(_M):
     imu: ImuNoise | None = None  # UAVs
     gnss_pos_sigma_m: tuple[float, float, float] | None = None  # nominal, for estimators' models / init
     gnss_vel_sigma_mps: float | None = None
+    # per-axis σ of the time-correlated (first-order Gauss–Markov) part of the position error, m,
+    # already included in gnss_pos_sigma_m; 0 = a white-noise receiver, None = not known
+    gnss_correlated_sigma_m: float | None = None
+    gnss_correlation_time_s: float | None = None  # its correlation time τ, s
 
 
 class Earth(_M):

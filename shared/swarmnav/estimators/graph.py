@@ -23,7 +23,7 @@ Epoch k (driven by ``swarmnav.protocol``):
     the epoch's UWB part is rebuilt from scratch every round (the time-varying graph):
     atvfg — residual matrix over every ranged pair on the round's broadcast positions → Δh by
     2-means (descended below a ceiling of ``delta_h_ceil_factor``·Δl, floored at 3·Δl) → H0/H1/H2
-    (detection.py); H0 neighbours leave the graph (range *and* az/el), H1 links get the eq. 24
+    (detection.py); H0 links leave the graph (their az/el stays, see "Choices"), H1 links get the eq. 24
     weight capped at (Δl/∂)² (``h1_weight_cap``), H2 full weight. fg — every in-range link, weight 1. Then a small
     Gauss–Newton solve on the node's own position: the local prior N(p_loc, P_loc) plus the range
     (and eq. 27 az/el) factors to the neighbours, whose broadcast positions enter with their
@@ -54,8 +54,10 @@ is committed once with information × ``commit_weight`` (default 1.0). The forme
 
 Choices: range timestamps inside the epoch are treated as at the epoch time; the node's own tag
 lever arm is applied with its current attitude, a neighbour's is ignored (its attitude is not
-broadcast); an az/el observation of a neighbour takes that neighbour's range weight (an H0
-neighbour loses both).
+broadcast); an az/el observation is a separate sensor from UWB ranging and keeps full weight when
+the neighbour's range link is classified H0/H1 (``azel_weight = "full"``; ``"range"`` gives it the
+range link's weight, the former default — measured in docs/estimators.md: a failed UWB module then
+cut UAV 5 off the swarm for 200 s).
 """
 
 from __future__ import annotations
@@ -106,6 +108,9 @@ class GraphEstimator(NodeEstimator):
         self.ceil_factor = None if cf is None or float(cf) <= 0 else float(cf)
         self.cap_h1 = bool(s.get("h1_weight_cap", True))
         self.use_azel = bool(s.get("use_azel", True))
+        # az/el is a separate sensor from UWB ranging: "full" keeps it at full weight whatever the
+        # link's range class; "range" gives it the range link's weight (an H0 neighbour loses both)
+        self.azel_weight = str(s.get("azel_weight", "full"))
         # what a broadcast's covariance is: "own" = the node's own-sensor-only marginal (a second,
         # non-cooperative smoother), "local" = the cooperative smoother's marginal before this
         # epoch's cooperative information (the former default). See "Double counting" above.
@@ -150,8 +155,14 @@ class GraphEstimator(NodeEstimator):
         # the dataset's reported GNSS sigma already includes the receiver's time-correlated part
         self.gnss_extra_var = float((settings or {}).get("gnss_extra_var_m2", 0.0))
         self.commit_weight = float((settings or {}).get("commit_weight", 0.3))
+        # GNSS sigma × gnss_sigma_scale covers a receiver's time-correlated (Gauss–Markov) error,
+        # which the smoother would otherwise average as if white. Applied only where the dataset
+        # says there is such an error (node.gnss_correlated_sigma_m > 0) or does not say (None); a
+        # declared white-noise receiver (0) is used at its stated sigma.
         self.gnss_scale = float((settings or {}).get("gnss_sigma_scale", 2.5))
-        # per-role override (e.g. masters' receivers have no time-correlated error to cover)
+        if node.gnss_correlated_sigma_m == 0:
+            self.gnss_scale = 1.0
+        # per-role override (explicit tuning)
         role_scale = ((settings or {}).get("gnss_sigma_scale_by_role", {}) or {}).get(str(meta.node(uav).role))
         if role_scale is not None:
             self.gnss_scale = float(role_scale)
@@ -502,12 +513,13 @@ class GraphEstimator(NodeEstimator):
                         np.where(inp.range_sigma[rows] > 0, inp.range_sigma[rows], self.uwb_sigma) ** 2,
                         inp.range_m[rows])
         if self.use_azel and self.rel_sigma and len(inp.rel_target):
-            idx = [i for i, o in enumerate(inp.rel_target) if int(o) in peers and self._weights.get(int(o), 1.0) > 0]
+            wa = (lambda o: 1.0) if self.azel_weight == "full" else (lambda o: self._weights.get(o, 1.0))
+            idx = [i for i, o in enumerate(inp.rel_target) if int(o) in peers and wa(int(o)) > 0]
             if idx:
                 tg = [int(inp.rel_target[i]) for i in idx]
                 st = np.array([inp.rel_sigma[i] if inp.rel_sigma[i] > 0 else self.rel_sigma for i in idx])
                 L["azel"] = (np.array([peers[o].pos for o in tg]), np.array([peers[o].pos_cov * fi(o) for o in tg]),
-                             np.array([self._weights.get(o, 1.0) for o in tg]), st ** 2,
+                             np.array([wa(o) for o in tg]), st ** 2,
                              np.column_stack([inp.rel_az[idx], inp.rel_el[idx]]))
         return L
 

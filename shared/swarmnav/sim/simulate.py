@@ -154,7 +154,9 @@ def simulate_full(sc: Scenario, seed: int | None = None) -> SimResult:
         sp = gspec[roles[i]]
         nodes.append(Node(id=int(u), kind="uav", role=roles[i], imu=noise[roles[i]],
                           gnss_pos_sigma_m=tuple(float(x) for x in gnss_sigma_total(sp)),
-                          gnss_vel_sigma_mps=float(sp.vel_sigma_mps)))
+                          gnss_vel_sigma_mps=float(sp.vel_sigma_mps),
+                          gnss_correlated_sigma_m=float(sp.gm_sigma_m),
+                          gnss_correlation_time_s=float(sp.gm_tau_s) if sp.gm_sigma_m > 0 else None))
     events = []
     for pk_ in sc.faults.process_kill:
         events.append(EventSpec(t=pk_.at_s, kind="kill", uav=pk_.uav))
