@@ -435,41 +435,39 @@ class GraphEstimator(NodeEstimator):
             self._last_state = NodeState(self.uav, s.k, r, s.t, s.pos, s.pos_cov, s.vel, 0.0)
             return self._last_state
         for j, s in peers.items():
-            if s.ranges:
+            if s.ranges:  # round-0 states carry the sender's ranges
                 self.peer_links[j] = len(s.ranges)
-            for o, d in s.ranges.items():
-                key = (min(j, o), max(j, o))
-                self.peer_ranges.setdefault(key, float(d))
-        nb = sorted(o for o in self._rows if o in peers)
+                for o, d in s.ranges.items():
+                    self.peer_ranges.setdefault((min(j, o), max(j, o)), float(d))
+        c = self._round_cache(peers)
+        nb = c["nb"]
+        # positions / covariances of every node in c["nodes"] order (own row: own last state)
+        P = np.array([peers[u].pos if u != self.uav else self._last_state.pos for u in c["nodes"]])
         weights = {o: 1.0 for o in nb}
         res_own = {}
         if self.detect and nb:
-            ranges = dict(self.peer_ranges)
-            for o, d in self.my_ranges.items():
-                ranges[(min(self.uav, o), max(self.uav, o))] = d
-            positions = {j: s.pos for j, s in peers.items()}
-            positions[self.uav] = self._last_state.pos
-            pairs, res = det.residual_matrix(positions, ranges)
+            pairs = c["pairs"]
+            res = np.abs(c["d"] - np.linalg.norm(P[c["ia"]] - P[c["ib"]], axis=1))
             self.delta_h, cls, w = det.detect(res, self.delta_l, self.window, self.floor_factor,
                                                  self.kmeans_backend, self.ceil_factor, self.cap_h1)
             if self.eq24_on == "residual":
                 w = w * w  # eq. 25 literally: l scales the residual, so the squared residual by l²
             self._final_res = res
-            mine = np.flatnonzero((pairs[:, 0] == self.uav) | (pairs[:, 1] == self.uav))
-            for i in mine:
-                o = int(pairs[i, 1] if pairs[i, 0] == self.uav else pairs[i, 0])
+            for i, o in zip(c["mine"], c["mine_other"]):
                 if o in weights:
                     weights[o] = float(w[i])
                     res_own[o] = (float(res[i]), int(cls[i]))
             if self.sticky and r > 1:
                 # a link flagged in an earlier round of the epoch stays flagged: the residuals of
                 # later rounds are on positions the faulty link itself has already pulled
-                for o, (rv, c) in self._res_own.items():
+                for o, (rv, c_) in self._res_own.items():
                     if o in weights and o in res_own and self._weights.get(o, 1.0) < weights[o]:
                         weights[o] = self._weights[o]
-                        res_own[o] = (res_own[o][0], min(c, res_own[o][1]))
+                        res_own[o] = (res_own[o][0], min(c_, res_own[o][1]))
         self._weights, self._res_own, self._nb = weights, res_own, nb
         self._peers = peers
+        self._P = P
+        self._C = np.array([peers[u].pos_cov if u != self.uav else np.zeros((3, 3)) for u in c["nodes"]])
         self._L = self._prepare_links(self.round_infl)
         p_prev = self.p.copy()
         p = self.p.copy()
@@ -488,39 +486,76 @@ class GraphEstimator(NodeEstimator):
         self._last_state = s
         return s
 
+    def _round_cache(self, peers: dict[int, NodeState]) -> dict:
+        """Everything about this epoch's links that does not change between rounds (the residual
+        matrix's pairs and ranges, this node's range and az/el rows per neighbour), rebuilt only
+        when the set of live peers or of known ranges changes."""
+        key = (tuple(sorted(peers)), len(self.peer_ranges))
+        c = getattr(self, "_cache", None)
+        if c is not None and c["key"] == key and c["k"] == self.k:
+            return c
+        inp = self.inp
+        nodes = sorted(set(peers) | {self.uav})
+        idx = {u: i for i, u in enumerate(nodes)}
+        ranges = dict(self.peer_ranges)
+        for o, d in self.my_ranges.items():
+            ranges[(min(self.uav, o), max(self.uav, o))] = d
+        keys = sorted(k for k in ranges if k[0] in idx and k[1] in idx)
+        pairs = np.array(keys, np.int64).reshape(-1, 2)
+        mine = [i for i, (a, b) in enumerate(keys) if self.uav in (a, b)]
+        nb = sorted(o for o in self._rows if o in peers)
+        rows, owner = [], []
+        for o in nb:
+            rows.extend(self._rows[o])
+            owner.extend([o] * len(self._rows[o]))
+        rows = np.array(rows, int)
+        Rm = self.pose.rotation().matrix()
+        c = {"key": key, "k": self.k, "nodes": nodes, "idx": idx, "pairs": pairs,
+             "d": np.array([ranges[k] for k in keys], float),
+             "ia": np.array([idx[a] for a, _ in keys], int), "ib": np.array([idx[b] for _, b in keys], int),
+             "mine": mine, "mine_other": [int(keys[i][1] if keys[i][0] == self.uav else keys[i][0]) for i in mine],
+             "nb": nb, "rng_owner": np.array(owner, int), "rng_node": np.array([idx[o] for o in owner], int)}
+        if len(rows):
+            c["rng_lever"] = np.array([self.tags.get(int(t), np.zeros(3)) for t in inp.range_tag_self[rows]]) @ Rm.T
+            c["rng_sig2"] = np.where(inp.range_sigma[rows] > 0, inp.range_sigma[rows], self.uwb_sigma) ** 2
+            c["rng_z"] = inp.range_m[rows]
+        if self.use_azel and self.rel_sigma and len(inp.rel_target):
+            ai = [i for i, o in enumerate(inp.rel_target) if int(o) in peers]
+            if ai:
+                c["azel_target"] = np.array([int(inp.rel_target[i]) for i in ai], int)
+                c["azel_node"] = np.array([idx[int(inp.rel_target[i])] for i in ai], int)
+                st = np.array([inp.rel_sigma[i] if inp.rel_sigma[i] > 0 else self.rel_sigma for i in ai])
+                c["azel_sig2"] = st ** 2
+                c["azel_z"] = np.column_stack([inp.rel_az[ai], inp.rel_el[ai]])
+        self._cache = c
+        return c
+
     def _prepare_links(self, infl: float | None = None):
         """Arrays of this round's active links (weights > 0) for the Gauss-Newton solve; neighbour
         covariances × ``infl`` (None: the double-counting inflation ``_infl``)."""
-        fi = self._infl if infl is None else (lambda o: infl)
-        inp, peers = self.inp, self._peers
-        Rm = self.pose.rotation().matrix()
-        rows, pj, Pj, w = [], [], [], []
-        for o in self._nb:
-            wo = self._weights[o]
-            if wo <= 0:
-                continue
-            s = peers[o]
-            for i in self._rows[o]:
-                rows.append(i)
-                pj.append(s.pos)
-                Pj.append(s.pos_cov * fi(o))
-                w.append(wo)
+        c = self._cache
+        P, C = self._P, self._C
         L = {}
-        if rows:
-            rows = np.array(rows)
-            L["rng"] = (np.array(pj), np.array(Pj), np.array(w),
-                        np.array([self.tags.get(int(t), np.zeros(3)) for t in inp.range_tag_self[rows]]) @ Rm.T,
-                        np.where(inp.range_sigma[rows] > 0, inp.range_sigma[rows], self.uwb_sigma) ** 2,
-                        inp.range_m[rows])
-        if self.use_azel and self.rel_sigma and len(inp.rel_target):
-            wa = (lambda o: 1.0) if self.azel_weight == "full" else (lambda o: self._weights.get(o, 1.0))
-            idx = [i for i, o in enumerate(inp.rel_target) if int(o) in peers and wa(int(o)) > 0]
-            if idx:
-                tg = [int(inp.rel_target[i]) for i in idx]
-                st = np.array([inp.rel_sigma[i] if inp.rel_sigma[i] > 0 else self.rel_sigma for i in idx])
-                L["azel"] = (np.array([peers[o].pos for o in tg]), np.array([peers[o].pos_cov * fi(o) for o in tg]),
-                             np.array([wa(o) for o in tg]), st ** 2,
-                             np.column_stack([inp.rel_az[idx], inp.rel_el[idx]]))
+        if len(c["rng_owner"]):
+            w = np.array([self._weights[o] for o in c["rng_owner"]])
+            keep = w > 0
+            if keep.any():
+                f = (np.full(len(w), infl) if infl is not None
+                     else np.array([self._infl(int(o)) for o in c["rng_owner"]]))
+                n = c["rng_node"][keep]
+                L["rng"] = (P[n], C[n] * f[keep][:, None, None], w[keep], c["rng_lever"][keep],
+                            c["rng_sig2"][keep], c["rng_z"][keep])
+        if "azel_target" in c:
+            tg = c["azel_target"]
+            w = (np.ones(len(tg)) if self.azel_weight == "full"
+                 else np.array([self._weights.get(int(o), 1.0) for o in tg]))
+            keep = w > 0
+            if keep.any():
+                f = (np.full(len(w), infl) if infl is not None
+                     else np.array([self._infl(int(o)) for o in tg]))
+                n = c["azel_node"][keep]
+                L["azel"] = (P[n], C[n] * f[keep][:, None, None], w[keep], c["azel_sig2"][keep],
+                             c["azel_z"][keep])
         return L
 
     def _infl(self, o: int) -> float:
