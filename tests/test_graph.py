@@ -233,3 +233,18 @@ def test_anchor_range_time_shift_moves_anchor_by_velocity():
     v = gtsam.Values()
     v.insert(X(0), gtsam.Pose3(gtsam.Rot3(), np.array([0.1, 0.0, 0.0])))  # p(t); at t_r it was 0.0
     assert g.error(v) < 1e-12  # |p(t) − (anchor + v·0.05)| = |0.1 − 10.1| = 10 = measured
+
+
+def test_neighbour_bearing_turned_around_is_the_reverse_direction():
+    """A neighbour j's az/el of this node i is used by i as an observation of j at (az + pi, -el)
+    (graph._round_cache): check the identity on random geometry, through the pole-free range."""
+    from swarmnav.estimators.factors import wrap_angle
+    from swarmnav.geometry import azimuth_elevation
+
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        pi_, pj = rng.uniform(-300, 300, 3), rng.uniform(-300, 300, 3)
+        az_ji, el_ji = azimuth_elevation(pj, pi_)  # j observes i
+        az_ij, el_ij = azimuth_elevation(pi_, pj)  # what i would observe of j
+        assert abs(wrap_angle(float(wrap_angle(az_ji + np.pi)) - float(az_ij))) < 1e-9
+        assert abs(-float(el_ji) - float(el_ij)) < 1e-12

@@ -13,7 +13,9 @@ from swarmnav.wire import messages as M
 
 def _state(rng):
     return NodeState(3, 5, 2, 5.0, rng.normal(size=3) * 1e3, np.diag(rng.random(3)), rng.normal(size=3),
-                     float("inf"), {1: 12.345678901234567, 7: float(rng.random() * 400)})
+                     float("inf"), {1: 12.345678901234567, 7: float(rng.random() * 400)},
+                     {1: (float(rng.uniform(-3, 3)), float(rng.uniform(-1.5, 1.5)), 0.017453292519943295),
+                      9: (-np.pi, np.pi / 2, 1e-3)})
 
 
 def test_state_float64_exact():
@@ -22,6 +24,7 @@ def test_state_float64_exact():
     s2 = M.msg_to_state(M.decode(M.StateMsg, M.state_to_msg(s).encode(), uav=3))
     assert np.array_equal(s.pos, s2.pos) and np.array_equal(s.pos_cov, s2.pos_cov) and np.array_equal(s.vel, s2.vel)
     assert s2.delta_m == float("inf") and s2.ranges == s.ranges and (s2.uav, s2.k, s2.r) == (3, 5, 2)
+    assert s2.bearings == s.bearings
 
 
 def test_extreme_floats_exact():
@@ -183,6 +186,7 @@ def test_state_frame_exact():
     s2 = M.decode_state(M.encode_state(s), uav=3, min_k=5)
     assert np.array_equal(s.pos, s2.pos) and np.array_equal(s.pos_cov, s2.pos_cov) and np.array_equal(s.vel, s2.vel)
     assert s2.delta_m == float("inf") and s2.ranges == s.ranges and list(s2.ranges) == sorted(s.ranges)
+    assert s2.bearings == s.bearings and list(s2.bearings) == sorted(s.bearings)
     assert (s2.uav, s2.k, s2.r, s2.t) == (3, 5, 2, 5.0)
 
 
@@ -198,6 +202,10 @@ def test_state_frame_rejects():
     bad = _state(np.random.default_rng(9))
     bad.ranges = {1: -3.0}
     cases.append((M.encode_state(bad), "invalid"))
+    for bearing in ((0.0, 1.6, 0.01), (3.2, 0.0, 0.01), (0.0, 0.0, 0.0), (0.0, float("nan"), 0.01)):
+        bad = _state(np.random.default_rng(9))
+        bad.bearings = {4: bearing}
+        cases.append((M.encode_state(bad), "invalid"))
     for payload, reason in cases:
         with pytest.raises(M.WireError) as e:
             M.decode_state(payload, uav=3)

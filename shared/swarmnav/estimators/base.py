@@ -49,6 +49,9 @@ class NodeState:
     delta_m: float = float("inf")  # position change since the previous round (swarm-wide convergence)
     # round 0 only: the ranges this node measured this epoch, other id -> metres (for the residual matrix)
     ranges: dict[int, float] = field(default_factory=dict)
+    # round 0 only: this node's relative az/el observations (eq. 27, ENU), target id ->
+    # (azimuth rad, elevation rad, sigma rad), so the target can use them too
+    bearings: dict[int, tuple[float, float, float]] = field(default_factory=dict)
 
 
 @dataclass

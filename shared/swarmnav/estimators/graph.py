@@ -111,6 +111,11 @@ class GraphEstimator(NodeEstimator):
         # az/el is a separate sensor from UWB ranging: "full" keeps it at full weight whatever the
         # link's range class; "range" gives it the range link's weight (an H0 neighbour loses both)
         self.azel_weight = str(s.get("azel_weight", "full"))
+        # the neighbours' az/el observations *of this node* (broadcast in their round-0 states):
+        # "rounds" = used in the round solves (the joint snapshot has them) but not committed (each
+        # observation enters the smoothers once, by its observer); "commit" = also committed;
+        # "off" = not used
+        self.reverse_azel = str(s.get("reverse_azel", "rounds"))
         # what a broadcast's covariance is: "own" = the node's own-sensor-only marginal (a second,
         # non-cooperative smoother), "local" = the cooperative smoother's marginal before this
         # epoch's cooperative information (the former default). See "Double counting" above.
@@ -312,11 +317,12 @@ class GraphEstimator(NodeEstimator):
         self._own_ranges(inp)
         self.peer_ranges: dict[tuple[int, int], float] = {}
         self.peer_links: dict[int, int] = {}
+        self.peer_bearings: dict[int, tuple[float, float, float]] = {}
         self.links: list[LinkInfo] = []
         self.Lam = None
         self.delta_h = None
         self._last_state = NodeState(self.uav, inp.k, 0, inp.t, self.p.copy(), self._broadcast_cov(),
-                                     self.vel.copy(), float("inf"), dict(self.my_ranges))
+                                     self.vel.copy(), float("inf"), dict(self.my_ranges), self._own_bearings(inp))
         return self._last_state
 
     def _read_estimate(self):
@@ -427,6 +433,17 @@ class GraphEstimator(NodeEstimator):
         for o, rows in sorted(self._rows.items()):
             self.my_ranges[o] = float(np.mean(inp.range_m[rows]))
 
+    def _own_bearings(self, inp: EpochInput) -> dict[int, tuple[float, float, float]]:
+        """This epoch's az/el observations to other UAVs, one per target (the first), to broadcast."""
+        if not (self.cooperative and self.use_azel and self.rel_sigma) or not len(inp.rel_target):
+            return {}
+        out: dict[int, tuple[float, float, float]] = {}
+        for i, o in enumerate(inp.rel_target):
+            if int(o) != self.uav and int(o) not in out:
+                sg = float(inp.rel_sigma[i]) if inp.rel_sigma[i] > 0 else float(self.rel_sigma)
+                out[int(o)] = (float(inp.rel_az[i]), float(inp.rel_el[i]), sg)
+        return out
+
     # -- rounds ------------------------------------------------------------------------------
 
     def iterate(self, r: int, peers: dict[int, NodeState]) -> NodeState:
@@ -435,10 +452,12 @@ class GraphEstimator(NodeEstimator):
             self._last_state = NodeState(self.uav, s.k, r, s.t, s.pos, s.pos_cov, s.vel, 0.0)
             return self._last_state
         for j, s in peers.items():
-            if s.ranges:  # round-0 states carry the sender's ranges
+            if s.ranges:  # round-0 states carry the sender's ranges and bearings
                 self.peer_links[j] = len(s.ranges)
                 for o, d in s.ranges.items():
                     self.peer_ranges.setdefault((min(j, o), max(j, o)), float(d))
+            if s.bearings and self.uav in s.bearings:
+                self.peer_bearings[j] = s.bearings[self.uav]
         c = self._round_cache(peers)
         nb = c["nb"]
         # positions / covariances of every node in c["nodes"] order (own row: own last state)
@@ -490,7 +509,7 @@ class GraphEstimator(NodeEstimator):
         """Everything about this epoch's links that does not change between rounds (the residual
         matrix's pairs and ranges, this node's range and az/el rows per neighbour), rebuilt only
         when the set of live peers or of known ranges changes."""
-        key = (tuple(sorted(peers)), len(self.peer_ranges))
+        key = (tuple(sorted(peers)), len(self.peer_ranges), len(self.peer_bearings))
         c = getattr(self, "_cache", None)
         if c is not None and c["key"] == key and c["k"] == self.k:
             return c
@@ -519,20 +538,33 @@ class GraphEstimator(NodeEstimator):
             c["rng_lever"] = np.array([self.tags.get(int(t), np.zeros(3)) for t in inp.range_tag_self[rows]]) @ Rm.T
             c["rng_sig2"] = np.where(inp.range_sigma[rows] > 0, inp.range_sigma[rows], self.uwb_sigma) ** 2
             c["rng_z"] = inp.range_m[rows]
-        if self.use_azel and self.rel_sigma and len(inp.rel_target):
+        if self.use_azel and self.rel_sigma:
+            # own observations (observer = this node), then the neighbours' observations of this
+            # node turned around: the direction j -> i at (az, el) is i -> j at (az + pi, -el)
             ai = [i for i, o in enumerate(inp.rel_target) if int(o) in peers]
-            if ai:
-                c["azel_target"] = np.array([int(inp.rel_target[i]) for i in ai], int)
-                c["azel_node"] = np.array([idx[int(inp.rel_target[i])] for i in ai], int)
-                st = np.array([inp.rel_sigma[i] if inp.rel_sigma[i] > 0 else self.rel_sigma for i in ai])
-                c["azel_sig2"] = st ** 2
-                c["azel_z"] = np.column_stack([inp.rel_az[ai], inp.rel_el[ai]])
+            tg = [int(inp.rel_target[i]) for i in ai]
+            sg = [inp.rel_sigma[i] if inp.rel_sigma[i] > 0 else self.rel_sigma for i in ai]
+            z = [(inp.rel_az[i], inp.rel_el[i]) for i in ai]
+            c["n_own_azel"] = len(tg)
+            if self.reverse_azel != "off":
+                for j, (az, el, sj) in sorted(self.peer_bearings.items()):
+                    if j in peers:
+                        tg.append(j)
+                        sg.append(sj)
+                        z.append((wrap_angle(az + np.pi), -el))
+            if tg:
+                c["azel_target"] = np.array(tg, int)
+                c["azel_node"] = np.array([idx[o] for o in tg], int)
+                c["azel_sig2"] = np.array(sg, float) ** 2
+                c["azel_z"] = np.array(z, float).reshape(-1, 2)
         self._cache = c
         return c
 
-    def _prepare_links(self, infl: float | None = None):
+    def _prepare_links(self, infl: float | None = None, commit: bool = False):
         """Arrays of this round's active links (weights > 0) for the Gauss-Newton solve; neighbour
-        covariances × ``infl`` (None: the double-counting inflation ``_infl``)."""
+        covariances × ``infl`` (None: the double-counting inflation ``_infl``). ``commit``: the
+        links committed to the smoother (the neighbours' az/el of this node only if
+        ``reverse_azel`` = "commit")."""
         c = self._cache
         P, C = self._P, self._C
         L = {}
@@ -546,16 +578,17 @@ class GraphEstimator(NodeEstimator):
                 L["rng"] = (P[n], C[n] * f[keep][:, None, None], w[keep], c["rng_lever"][keep],
                             c["rng_sig2"][keep], c["rng_z"][keep])
         if "azel_target" in c:
-            tg = c["azel_target"]
+            na = c["n_own_azel"] if commit and self.reverse_azel != "commit" else len(c["azel_target"])
+            tg = c["azel_target"][:na]
             w = (np.ones(len(tg)) if self.azel_weight == "full"
                  else np.array([self._weights.get(int(o), 1.0) for o in tg]))
             keep = w > 0
             if keep.any():
                 f = (np.full(len(w), infl) if infl is not None
                      else np.array([self._infl(int(o)) for o in tg]))
-                n = c["azel_node"][keep]
-                L["azel"] = (P[n], C[n] * f[keep][:, None, None], w[keep], c["azel_sig2"][keep],
-                             c["azel_z"][keep])
+                n = c["azel_node"][:na][keep]
+                L["azel"] = (P[n], C[n] * f[keep][:, None, None], w[keep], c["azel_sig2"][:na][keep],
+                             c["azel_z"][:na][keep])
         return L
 
     def _infl(self, o: int) -> float:
@@ -613,7 +646,7 @@ class GraphEstimator(NodeEstimator):
         pos_cov = self.P_loc
         pos = None
         if self.cooperative and self._links_ready:
-            Lc = self._L if self.round_infl is None else self._prepare_links(None)
+            Lc = self._prepare_links(None, commit=True)
             Lam, gsum = self._normal_equations(self.p, coop_only=True, L=Lc)
             if np.trace(Lam) > 0 and self.commit_weight > 0:
                 Lam, gsum = Lam * self.commit_weight, gsum * self.commit_weight

@@ -31,7 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from ..dataset import EpochInput
 from ..estimators.base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeState
 
-SCHEMA_VERSION = 2  # 2: binary input/state frames (below); JSON messages unchanged otherwise
+SCHEMA_VERSION = 3  # 2: binary input/state frames (below); 3: states carry az/el bearings
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False)]
@@ -181,6 +181,16 @@ class StateMsg(UavMsg):
     vel: Vec3
     delta_m: Annotated[float, Field(ge=0, allow_inf_nan=True)] = math.inf
     ranges: dict[int, NonNeg] = Field(default_factory=dict)
+    # target id -> [azimuth rad, elevation rad, sigma rad] (round 0)
+    bearings: dict[int, Annotated[list[Finite], Field(min_length=3, max_length=3)]] = Field(default_factory=dict)
+
+    @field_validator("bearings")
+    @classmethod
+    def _bearings(cls, b: dict) -> dict:
+        for o, (az, el, sg) in b.items():
+            if o < 0 or not (-math.pi <= az <= math.pi and -math.pi / 2 <= el <= math.pi / 2 and sg > 0):
+                raise ValueError(f"bearing to {o}: azimuth in [-pi, pi], elevation in [-pi/2, pi/2], sigma > 0")
+        return b
 
     @field_validator("delta_m")
     @classmethod
@@ -295,13 +305,15 @@ def _f(a) -> list[float]:
 
 def state_to_msg(s: NodeState) -> StateMsg:
     return StateMsg(uav=s.uav, k=s.k, r=s.r, t=float(s.t), pos=_f(s.pos), pos_cov=_f(s.pos_cov), vel=_f(s.vel),
-                    delta_m=float(s.delta_m), ranges={int(o): float(d) for o, d in sorted(s.ranges.items())})
+                    delta_m=float(s.delta_m), ranges={int(o): float(d) for o, d in sorted(s.ranges.items())},
+                    bearings={int(o): [float(x) for x in b] for o, b in sorted(s.bearings.items())})
 
 
 def msg_to_state(m: StateMsg) -> NodeState:
     return NodeState(uav=m.uav, k=m.k, r=m.r, t=m.t, pos=np.array(m.pos, np.float64),
                      pos_cov=np.array(m.pos_cov, np.float64).reshape(3, 3), vel=np.array(m.vel, np.float64),
-                     delta_m=m.delta_m, ranges={int(o): float(d) for o, d in sorted(m.ranges.items())})
+                     delta_m=m.delta_m, ranges={int(o): float(d) for o, d in sorted(m.ranges.items())},
+                     bearings={int(o): (float(b[0]), float(b[1]), float(b[2])) for o, b in sorted(m.bearings.items())})
 
 
 def estimate_to_msg(e: NodeEstimate, **extra) -> EstimateMsg:
@@ -387,9 +399,10 @@ SENSOR_MSG: dict[str, type[UavMsg]] = {"imu": ImuMsg, "gnss": GnssMsg, "uwb": Uw
 #   array lengths), then the arrays as little-endian float64/int64 in :data:`_INPUT_F` /
 #   :data:`_INPUT_I` order. The arrays are validated with numpy after decoding (finite, ranges
 #   >= 0, sigmas > 0, ids >= 0, no self-ranging or self-observation).
-# * ``uav/<id>/state`` (node -> peers, 4 rounds per epoch): ``b"SNS"`` + version byte, int32 LE
-#   uav, k, r, uint32 n (ranges), float64 LE [t, pos(3), pos_cov(9, row-major), vel(3), delta_m,
-#   range values(n)], int64 LE range peer ids(n). Decoded straight into the core's NodeState.
+# * ``uav/<id>/state`` (node -> peers, every round): ``b"SNS"`` + version byte, int32 LE
+#   uav, k, r, uint32 n (ranges), uint32 m (bearings), float64 LE [t, pos(3), pos_cov(9,
+#   row-major), vel(3), delta_m, reserved, range values(n), bearings (az, el, sigma)(m)], int64 LE
+#   range peer ids(n), bearing target ids(m). Decoded straight into the core's NodeState.
 #
 # float64 bytes are copied, so values arrive bit-identical (as with the JSON repr before).
 # The state queryable's history replies stay JSON (:class:`HistoryMsg`, rare).
@@ -398,7 +411,7 @@ import struct  # noqa: E402
 
 _STATE_MAGIC = b"SNS"
 _INPUT_MAGIC = b"SNI"
-_STATE_HDR = struct.Struct("<3sBiiiI")
+_STATE_HDR = struct.Struct("<3sBiiiII")
 _INPUT_HDR = struct.Struct("<3sBI")
 _STATE_NF = 18  # t, pos 3, cov 9, vel 3, delta_m, then n range values
 
@@ -412,38 +425,47 @@ def _check_magic(payload: bytes, magic: bytes, min_len: int) -> None:
 
 def encode_state(s: NodeState) -> bytes:
     ids = sorted(int(o) for o in s.ranges)
-    f = np.empty(_STATE_NF + len(ids), np.float64)
+    bids = sorted(int(o) for o in s.bearings)
+    n, m = len(ids), len(bids)
+    f = np.empty(_STATE_NF + n + 3 * m, np.float64)
     f[0] = s.t
     f[1:4] = np.asarray(s.pos, np.float64).ravel()
     f[4:13] = np.asarray(s.pos_cov, np.float64).ravel()
     f[13:16] = np.asarray(s.vel, np.float64).ravel()
     f[16] = s.delta_m
     f[17] = 0.0  # reserved (keeps the id block 8-byte aligned either way)
-    f[_STATE_NF:] = [s.ranges[o] for o in ids]
-    return (_STATE_HDR.pack(_STATE_MAGIC, SCHEMA_VERSION, int(s.uav), int(s.k), int(s.r), len(ids))
-            + f.astype("<f8", copy=False).tobytes() + np.asarray(ids, "<i8").tobytes())
+    f[_STATE_NF:_STATE_NF + n] = [s.ranges[o] for o in ids]
+    f[_STATE_NF + n:] = np.asarray([s.bearings[o] for o in bids], np.float64).ravel()
+    return (_STATE_HDR.pack(_STATE_MAGIC, SCHEMA_VERSION, int(s.uav), int(s.k), int(s.r), n, m)
+            + f.astype("<f8", copy=False).tobytes() + np.asarray(ids + bids, "<i8").tobytes())
 
 
 def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = None) -> NodeState:
     """Binary state frame -> NodeState; WireError(malformed|version|invalid|wrong_uav|stale)."""
     _check_magic(payload, _STATE_MAGIC, _STATE_HDR.size)
-    _, _, u, k, r, n = _STATE_HDR.unpack_from(payload)
-    if len(payload) != _STATE_HDR.size + 8 * (_STATE_NF + n) + 8 * n:
-        raise WireError("malformed", f"state frame of {len(payload)} bytes for {n} ranges")
-    f = np.frombuffer(payload, "<f8", _STATE_NF + n, _STATE_HDR.size).astype(np.float64)
-    ids = np.frombuffer(payload, "<i8", n, _STATE_HDR.size + 8 * (_STATE_NF + n))
+    _, _, u, k, r, n, m = _STATE_HDR.unpack_from(payload)
+    nf = _STATE_NF + n + 3 * m
+    if len(payload) != _STATE_HDR.size + 8 * nf + 8 * (n + m):
+        raise WireError("malformed", f"state frame of {len(payload)} bytes for {n} ranges and {m} bearings")
+    f = np.frombuffer(payload, "<f8", nf, _STATE_HDR.size).astype(np.float64)
+    ids = np.frombuffer(payload, "<i8", n + m, _STATE_HDR.size + 8 * nf)
     if u < 1 or k < 0 or r < 0:
         raise WireError("invalid", f"ids uav {u} k {k} r {r}")
     if not (np.isfinite(f[:16]).all() and np.isfinite(f[_STATE_NF:]).all()):
         raise WireError("invalid", "non-finite value")
-    if np.isnan(f[16]) or f[16] < 0 or (n and (f[_STATE_NF:].min() < 0 or ids.min() < 0)):
+    rng, bear = f[_STATE_NF:_STATE_NF + n], f[_STATE_NF + n:].reshape(m, 3)
+    if np.isnan(f[16]) or f[16] < 0 or (n + m and ids.min() < 0) or (n and rng.min() < 0):
         raise WireError("invalid", "negative range/delta or id")
+    if m and not ((np.abs(bear[:, 0]) <= np.pi).all() and (np.abs(bear[:, 1]) <= np.pi / 2).all()
+                  and (bear[:, 2] > 0).all()):
+        raise WireError("invalid", "bearing out of range (|az| <= pi, |el| <= pi/2, sigma > 0)")
     if uav is not None and u != uav:
         raise WireError("wrong_uav", f"message about UAV {u} on UAV {uav}'s key")
     if min_k is not None and k < min_k:
         raise WireError("stale", f"epoch {k} < {min_k}")
     return NodeState(uav=u, k=k, r=r, t=float(f[0]), pos=f[1:4].copy(), pos_cov=f[4:13].reshape(3, 3).copy(),
-                     vel=f[13:16].copy(), delta_m=float(f[16]), ranges=dict(zip(ids.tolist(), f[_STATE_NF:].tolist())))
+                     vel=f[13:16].copy(), delta_m=float(f[16]), ranges=dict(zip(ids[:n].tolist(), rng.tolist())),
+                     bearings={int(o): (float(b[0]), float(b[1]), float(b[2])) for o, b in zip(ids[n:].tolist(), bear)})
 
 
 class GnssPart(BaseModel):
