@@ -94,6 +94,9 @@ class Node(_M):
     imu: ImuNoise | None = None  # UAVs
     gnss_pos_sigma_m: tuple[float, float, float] | None = None  # nominal, for estimators' models / init
     gnss_vel_sigma_mps: float | None = None
+    # UAVs: the vehicle type when the recording knows it ("multirotor": the graph estimators may
+    # use the rotor-drag model, graph.py _drag_factor); None = unspecified (the simulator's UAVs)
+    airframe: Literal["multirotor"] | None = None
 
 
 class Earth(_M):
