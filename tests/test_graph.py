@@ -300,3 +300,27 @@ def test_drag_factor_residual_and_jacobians():
             num[:, col] = (-lp.jacobian()[1] - e0) / eps
             col += 1
     np.testing.assert_allclose(A, num, rtol=1e-5, atol=1e-5 * np.abs(A).max())
+
+
+def test_trained_delta_l_only_at_its_ranging_sigma(tmp_path):
+    """Δl from a calibration file applies to data with the σ it was trained at (± 10 %); otherwise
+    the documented fallback delta_l_fallback_sigmas × σ (MILUV: 0.19 m vs trained 0.10 m)."""
+    import json
+
+    from swarmnav.estimators.registry import estimator_settings
+
+    sc = load_config("configs/smoke.toml")
+    f = tmp_path / "dl.json"
+    f.write_text(json.dumps({"delta_l_m": 0.27, "uwb_sigma_m": 0.1}))
+    s = estimator_settings({**sc.estimation.model_dump(), "delta_l_file": str(f)})
+    assert s["delta_l_m"] == 0.27 and s["delta_l_uwb_sigma_m"] == 0.1
+    ds = simulate(sc, 1)
+    u = ds.meta.uav_ids()[0]
+    init = initial_states(ds, 1)[u]
+    assert ds.meta.uwb_sigma_m == 0.1
+    assert AtvfgEstimator(u, ds.meta, s, init).delta_l == 0.27
+    meta = ds.meta.model_copy(update={"uwb_sigma_m": 0.19})
+    assert AtvfgEstimator(u, meta, s, init).delta_l == pytest.approx(3 * 0.19)
+    f.write_text(json.dumps({"delta_l_m": 0.27}))  # older file without the training σ: used as is
+    s = estimator_settings({**sc.estimation.model_dump(), "delta_l_file": str(f)})
+    assert s["delta_l_uwb_sigma_m"] is None and AtvfgEstimator(u, meta, s, init).delta_l == 0.27

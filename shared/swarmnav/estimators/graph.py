@@ -101,6 +101,13 @@ class GraphEstimator(NodeEstimator):
         self.uwb_sigma = float(meta.uwb_sigma_m)
         self.rel_sigma = float(meta.rel_sigma_rad) if meta.rel_sigma_rad else None
         dl = s.get("delta_l_m")
+        # a trained Δl is a statistic of residuals at the training data's ranging σ (the file's
+        # uwb_sigma_m); on data whose σ differs by more than delta_l_sigma_tolerance (relative) it
+        # does not apply and the documented fallback (delta_l_fallback_sigmas × σ) is used
+        # (MILUV: trained at 0.10 m, recording 0.19 m -> Δl 0.557 m instead of 0.269 m)
+        dl_sig = s.get("delta_l_uwb_sigma_m")
+        if dl and dl_sig and abs(float(dl_sig) / self.uwb_sigma - 1.0) > float(s.get("delta_l_sigma_tolerance", 0.1)):
+            dl = None
         self.delta_l = float(dl) if dl else float(s.get("delta_l_fallback_sigmas", 3.0)) * self.uwb_sigma
         self.floor_factor = float(s.get("delta_h_floor_factor", det.DEFAULT_FLOOR_FACTOR))
         self.kmeans_backend = str(s.get("kmeans_backend", "exact"))
