@@ -324,3 +324,17 @@ def test_trained_delta_l_only_at_its_ranging_sigma(tmp_path):
     f.write_text(json.dumps({"delta_l_m": 0.27}))  # older file without the training σ: used as is
     s = estimator_settings({**sc.estimation.model_dump(), "delta_l_file": str(f)})
     assert s["delta_l_uwb_sigma_m"] is None and AtvfgEstimator(u, meta, s, init).delta_l == 0.27
+
+
+def test_central_drag_only_for_declared_multirotors():
+    from swarmnav.estimators.central import CentralEstimator
+
+    sc = load_config("configs/smoke.toml")
+    ds = simulate(sc, 1)
+    s, inits = _settings(sc), initial_states(ds, 1)
+    assert CentralEstimator(ds.meta, s, inits).drag == set()  # simulated: no airframe, paper unchanged
+    meta = ds.meta.model_copy(deep=True)
+    u = meta.uav_ids()[0]
+    meta.node(u).airframe = "multirotor"
+    assert CentralEstimator(meta, s, inits).drag == {u}
+    assert CentralEstimator(meta, {**s, "rotor_drag": False}, inits).drag == set()

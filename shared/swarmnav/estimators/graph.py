@@ -67,7 +67,7 @@ from gtsam.symbol_shorthand import B, V, X
 from ..dataset import DatasetMeta, EpochInput
 from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState
 from . import detection as det
-from .factors import stacked_range_factor, wrap_angle
+from .factors import rotor_drag_factor, stacked_range_factor, wrap_angle
 from .imu import hold_intervals, preintegrate, preintegration_params
 
 __all__ = ["AtvfgEstimator", "FgEstimator", "InsEstimator", "GraphEstimator", "link_sigma"]
@@ -365,27 +365,7 @@ class GraphEstimator(NodeEstimator):
         if self._at_rest:
             return m0
         sig = self.drag_sigma_scale * float(np.sqrt(self.params.getAccelerometerCovariance()[0, 0] / T))
-        fxy = fbar[:2]
-
-        def err(this, vals, H):
-            P = vals.atPose3(this.keys()[0])
-            vel = vals.atVector(this.keys()[1])
-            ba = vals.atConstantBias(this.keys()[2]).accelerometer()
-            m = vals.atVector(this.keys()[3])
-            Rm = P.rotation().matrix()
-            vb = Rm.T @ vel
-            if H is not None:
-                # right perturbation R·Exp(δθ): d(Rᵀv)/dδθ = [Rᵀv]×
-                sk = np.array([[0.0, -vb[2], vb[1]], [vb[2], 0.0, -vb[0]], [-vb[1], vb[0], 0.0]])
-                H[0] = np.hstack([m[0] * sk[:2], np.zeros((2, 3))])
-                H[1] = m[0] * Rm.T[:2]
-                Hb = np.zeros((2, 6))
-                Hb[0, 0] = Hb[1, 1] = -1.0
-                H[2] = Hb
-                H[3] = np.array([[vb[0], -1.0, 0.0], [vb[1], 0.0, -1.0]])
-            return m[0] * vb[:2] + (fxy - ba[:2]) - m[1:3]
-
-        g.add(gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(2, sig), [X(n), V(n), B(n), DRAG_KEY], err))
+        g.add(rotor_drag_factor(X(n), V(n), B(n), DRAG_KEY, fbar[:2], sig))
         return m0
 
     def drag_state(self) -> np.ndarray | None:
