@@ -72,3 +72,40 @@ def test_chi2_isolates_gross_range_fault(smoke):
     r = [o for o in outs if o.uav == 1 and o.k == 20][0]
     cls = {l.other: l.cls for l in r.links}
     assert cls[bad["other"]] == LinkClass.H0_FAILED
+
+
+def _locked_out_run(smoke, max_reject):
+    """One UAV at rest at the origin, 4 fixed anchors, an initial position 3 m off with a claimed
+    σ of 5 cm (an over-confident filter): every anchor range fails the χ² test."""
+    import dataclasses
+
+    from swarmnav.dataset import EpochInput
+
+    u = smoke.meta.uav_ids()[0]
+    init = dataclasses.replace(initial_states(smoke, 1)[u], pos=np.array([3.0, 0.0, 0.0]),
+                               pos_sigma=np.full(3, 0.05), vel=np.zeros(3), vel_sigma=0.01,
+                               quat=np.array([1.0, 0.0, 0.0, 0.0]), att_sigma=np.full(3, 1e-3))
+    est = FkfEstimator(u, smoke.meta, {"fkf_anchor_max_reject": max_reject}, init)
+    est.anchors = {100: np.array([10.0, 0, 0]), 101: np.array([0, 10.0, 0]), 102: np.array([-10.0, 0, 0]),
+                   103: np.array([0, -10.0, 5.0])}
+    est.tags_self = {0: np.zeros(3)}
+    g0 = float(np.linalg.norm(est.params.n_gravity))
+    for k in range(1, 41):
+        t_prev, t = init.t + (k - 1) * 0.1, init.t + k * 0.1
+        a = 100 + k % 4
+        inp = EpochInput(u, k, t, t_prev, t_prev + np.arange(10) * 0.01, np.zeros((10, 3)),
+                         np.tile([0.0, 0.0, g0], (10, 1)), range_t=np.array([t]), range_other=np.array([a]),
+                         range_tag_self=np.array([0]), range_tag_other=np.array([0]),
+                         range_m=np.array([np.linalg.norm(est.anchors[a])]), range_sigma=np.array([0.1]))
+        est.begin_epoch(inp)
+        for r in (1, 2):
+            est.iterate(r, {})
+        out = est.end_epoch()
+    return float(np.linalg.norm(out.pos))
+
+
+def test_anchor_lockout_guard(smoke):
+    """χ² lock-out (MILUV fkf: 253 m): without the guard an over-confident filter rejects every
+    anchor range for good; with it (default: 3 of the last 6 anchor ranges failed) they are fused again."""
+    assert _locked_out_run(smoke, 0) > 2.5
+    assert _locked_out_run(smoke, 3) < 1.0

@@ -248,3 +248,108 @@ def test_neighbour_bearing_turned_around_is_the_reverse_direction():
         az_ij, el_ij = azimuth_elevation(pi_, pj)  # what i would observe of j
         assert abs(wrap_angle(float(wrap_angle(az_ji + np.pi)) - float(az_ij))) < 1e-9
         assert abs(-float(el_ji) - float(el_ij)) < 1e-12
+
+
+def _drag_setup(sc=None):
+    import dataclasses
+
+    from swarmnav.dataset import EpochInput
+
+    sc = sc or load_config("configs/smoke.toml")
+    ds = simulate(sc, 1)
+    u = ds.meta.uav_ids()[0]
+    assert not InsEstimator(u, ds.meta, _settings(sc), initial_states(ds, 1)[u]).drag  # simulated: no airframe
+    meta = ds.meta.model_copy(deep=True)
+    for node in meta.nodes:
+        if node.id == u:
+            node.airframe = "multirotor"
+    est = InsEstimator(u, meta, _settings(sc), dataclasses.replace(initial_states(ds, 1)[u], vel=np.array([3.0, 0, 0])))
+    assert est.drag and not est._at_rest
+    f = np.array([0.3, -0.2, 9.8])
+    inp = EpochInput(u, 1, 1.1, 1.0, 1.0 + np.arange(10) * 0.01, np.zeros((10, 3)), np.tile(f, (10, 1)))
+    return est, inp, f
+
+
+def test_drag_factor_residual_and_jacobians():
+    """Rotor-drag factor: zero residual when μ(Rᵀv)_xy + f_xy − b_xy = c; analytic Jacobians match
+    numerical ones (right-perturbed pose, vector velocity/bias/state)."""
+    from gtsam.symbol_shorthand import B, V
+    from swarmnav.estimators.graph import DRAG_KEY
+
+    est, inp, f = _drag_setup()
+    g = gtsam.NonlinearFactorGraph()
+    m0 = est._drag_factor(g, 1, inp)
+    assert m0 is not None and g.size() == 2  # prior on M (first call) + the drag factor
+    fac = g.at(1)
+    rng = np.random.default_rng(3)
+    R = gtsam.Rot3.Expmap(rng.normal(0, 0.3, 3))
+    vel = np.array([1.0, -0.5, 0.2])
+    ba = np.r_[0.05, -0.02, 0.01, 0, 0, 0]
+    mu = 0.4
+    c = mu * (R.matrix().T @ vel)[:2] + f[:2] - ba[:2]  # consistent offset
+    vals = gtsam.Values()
+    vals.insert(X(1), gtsam.Pose3(R, np.array([1.0, 2.0, 3.0])))
+    vals.insert(V(1), vel)
+    vals.insert(B(1), gtsam.imuBias.ConstantBias(ba[:3], ba[3:]))
+    vals.insert(DRAG_KEY, np.r_[mu, c])
+    assert fac.error(vals) < 1e-20
+    vals.update(DRAG_KEY, np.r_[mu + 0.1, c])
+    lin = fac.linearize(vals)
+    A, b0 = lin.jacobian()
+    e0 = -b0
+    num = np.zeros_like(A)
+    eps = 1e-6
+    col = 0
+    for key, dim in ((X(1), 6), (V(1), 3), (B(1), 6), (DRAG_KEY, 3)):
+        for i in range(dim):
+            d = np.zeros(dim)
+            d[i] = eps
+            vv = gtsam.Values(vals)
+            if key == X(1):
+                vv.update(key, vals.atPose3(key).retract(d))
+            elif key == B(1):
+                vv.update(key, gtsam.imuBias.ConstantBias(ba[:3] + d[:3], ba[3:] + d[3:]))
+            else:
+                vv.update(key, vals.atVector(key) + d)
+            lp = fac.linearize(vv)
+            num[:, col] = (-lp.jacobian()[1] - e0) / eps
+            col += 1
+    np.testing.assert_allclose(A, num, rtol=1e-5, atol=1e-5 * np.abs(A).max())
+
+
+def test_trained_delta_l_only_at_its_ranging_sigma(tmp_path):
+    """Δl from a calibration file applies to data with the σ it was trained at (± 10 %); otherwise
+    the documented fallback delta_l_fallback_sigmas × σ (MILUV: 0.19 m vs trained 0.10 m)."""
+    import json
+
+    from swarmnav.estimators.registry import estimator_settings
+
+    sc = load_config("configs/smoke.toml")
+    f = tmp_path / "dl.json"
+    f.write_text(json.dumps({"delta_l_m": 0.27, "uwb_sigma_m": 0.1}))
+    s = estimator_settings({**sc.estimation.model_dump(), "delta_l_file": str(f)})
+    assert s["delta_l_m"] == 0.27 and s["delta_l_uwb_sigma_m"] == 0.1
+    ds = simulate(sc, 1)
+    u = ds.meta.uav_ids()[0]
+    init = initial_states(ds, 1)[u]
+    assert ds.meta.uwb_sigma_m == 0.1
+    assert AtvfgEstimator(u, ds.meta, s, init).delta_l == 0.27
+    meta = ds.meta.model_copy(update={"uwb_sigma_m": 0.19})
+    assert AtvfgEstimator(u, meta, s, init).delta_l == pytest.approx(3 * 0.19)
+    f.write_text(json.dumps({"delta_l_m": 0.27}))  # older file without the training σ: used as is
+    s = estimator_settings({**sc.estimation.model_dump(), "delta_l_file": str(f)})
+    assert s["delta_l_uwb_sigma_m"] is None and AtvfgEstimator(u, meta, s, init).delta_l == 0.27
+
+
+def test_central_drag_only_for_declared_multirotors():
+    from swarmnav.estimators.central import CentralEstimator
+
+    sc = load_config("configs/smoke.toml")
+    ds = simulate(sc, 1)
+    s, inits = _settings(sc), initial_states(ds, 1)
+    assert CentralEstimator(ds.meta, s, inits).drag == set()  # simulated: no airframe, paper unchanged
+    meta = ds.meta.model_copy(deep=True)
+    u = meta.uav_ids()[0]
+    meta.node(u).airframe = "multirotor"
+    assert CentralEstimator(meta, s, inits).drag == {u}
+    assert CentralEstimator(meta, {**s, "rotor_drag": False}, inits).drag == set()

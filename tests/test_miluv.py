@@ -40,6 +40,8 @@ def test_nodes_and_anchors(converted):
     m = ds.meta
     assert m.source == "recorded" and m.origin is None and m.events == []
     assert m.uav_ids() == [1, 2, 3]
+    assert [m.node(u).airframe for u in (1, 2, 3)] == ["multirotor"] * 3  # quadrotors: rotor-drag model
+    assert all(n.airframe is None for n in m.nodes if n.kind == "anchor")
     anchors = m.anchors()
     assert sorted(anchors) == [100, 101, 102, 103, 104, 105]
     # constellation "0" of config/uwb/anchors.yaml

@@ -296,10 +296,12 @@ def run(args) -> int:
             labels.append(lb)
         det, single = metrics.detection_report(np.concatenate(links), np.concatenate(labels), meta.fault_threshold_m)
         dh = metrics.percentiles(np.concatenate([r.delta_h_m.ravel() for r in rs]), (50, 95))
-        if dl is None:
-            v = np.concatenate([r.delta_l_m.ravel() for r in rs])
-            v = v[np.isfinite(v)]
-            dl = float(np.median(v)) if len(v) else None
+        # the Δl the estimator used (the file's may not apply: graph.py falls back when the
+        # file was trained at another ranging σ); the settings' value only if none was reported
+        v = np.concatenate([r.delta_l_m.ravel() for r in rs])
+        v = v[np.isfinite(v)]
+        if len(v):
+            dl = float(np.median(v))
     rep = build_report(mode="in-process", scenario=name, seeds=seeds, n_uavs=len(meta.uav_ids()),
                        duration_s=meta.duration_s, algorithms=blocks, detection=det, detection_single=single,
                        delta_l_m=dl, delta_h_m=dh, provenance=provenance(cfg_sha), events=[],

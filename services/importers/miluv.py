@@ -294,7 +294,8 @@ def convert(src: str | Path, epoch_dt: float = 0.1) -> tuple[Dataset, dict]:
             gyro_bias_rw=_float(ic, "gyroscope_random_walk", w),
             accel_bias_rw=_float(ic, "accelerometer_random_walk", w),
         )
-        nodes.append(Node(id=uid, kind="uav", role="slave", tags=tags, imu=imu_noise[uid]))
+        # the ifo robots are quadrotors (MILUV paper): declared so the rotor-drag model can apply
+        nodes.append(Node(id=uid, kind="uav", role="slave", tags=tags, imu=imu_noise[uid], airframe="multirotor"))
     for k, pos in sorted(anchors.items()):
         nodes.append(Node(id=ANCHOR_NODE_OFFSET + k, kind="anchor", role="anchor", position_enu=pos, tags={k: (0.0, 0.0, 0.0)}))
         tag_owner[k] = ANCHOR_NODE_OFFSET + k

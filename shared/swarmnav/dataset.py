@@ -98,6 +98,9 @@ class Node(_M):
     # already included in gnss_pos_sigma_m; 0 = a white-noise receiver, None = not known
     gnss_correlated_sigma_m: float | None = None
     gnss_correlation_time_s: float | None = None  # its correlation time τ, s
+    # UAVs: the vehicle type when the recording knows it ("multirotor": the graph estimators may
+    # use the rotor-drag model, graph.py _drag_factor); None = unspecified (the simulator's UAVs)
+    airframe: Literal["multirotor"] | None = None
 
 
 class Earth(_M):

@@ -25,7 +25,8 @@ import numpy as np
 
 from ..dataset import DatasetMeta, EpochInput, FaultKind
 from .base import InitialState, NodeEstimate, SwarmEstimator
-from .imu import preintegrate, preintegration_params
+from .factors import rotor_drag_factor
+from .imu import hold_intervals, preintegrate, preintegration_params
 
 
 def X(u: int, k: int) -> int:
@@ -38,6 +39,11 @@ def V(u: int, k: int) -> int:
 
 def B(u: int, k: int) -> int:
     return gtsam.symbol("b", u * 10_000_000 + k)
+
+
+def M(u: int) -> int:
+    """Rotor-drag state [μ, c_x, c_y] of multirotor UAV u (constant; kept in the window)."""
+    return gtsam.symbol("m", u)
 
 
 def keep_range(fault_kind: int, fault_err: float, threshold: float) -> bool:
@@ -164,6 +170,15 @@ class CentralEstimator(SwarmEstimator):
         p.relinearizeSkip = int(s.get("central_relin_skip", 1))
         p.setFactorization(str(s.get("central_factorization", "CHOLESKY")).upper())
         self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag, p)
+        # rotor-drag model of multirotor UAVs, as in graph.py (_drag_factor; same settings keys):
+        # applied from the first epoch (the oracle has no rest detection; at rest v = 0 and f_xy = c)
+        self.drag = {u for u in self.uavs if bool(s.get("rotor_drag", True))
+                     and getattr(meta.node(u), "airframe", None) == "multirotor"}
+        self.drag_mu0 = float(s.get("drag_mu_prior", 0.5))
+        self.drag_mu_sigma = float(s.get("drag_mu_prior_sigma", 0.5))
+        self.drag_sigma_scale = float(s.get("drag_sigma_scale", 1.0))
+        self._drag_started: set[int] = set()
+        self._rest0 = {u: float(inits[u].vel_sigma) <= 0.1 and float(np.linalg.norm(inits[u].vel)) <= 0.1 for u in self.uavs}
         self.k = 0
         self.dropped = 0  # ranges removed by the oracle so far
         self.nav: dict[int, gtsam.NavState] = {}
@@ -219,6 +234,8 @@ class CentralEstimator(SwarmEstimator):
                 g.add(gtsam.PriorFactorVector(V(u, k), np.asarray(inp.gnss_vel, float), gtsam.noiseModel.Isotropic.Sigma(3, sv)))
             if inp.altitude is not None and np.isfinite(inp.altitude):
                 g.add(_altitude_factor(X(u, k), float(inp.altitude), float(inp.altitude_sigma or 1.0)))
+            if u in self.drag:
+                self._add_drag(g, vals, ts, u, k, t, inp)
             if self.use_rel and len(inp.rel_target):
                 sel = [j for j in range(len(inp.rel_target)) if int(inp.rel_target[j]) in inputs and int(inp.rel_target[j]) != u]
                 if sel:
@@ -243,6 +260,22 @@ class CentralEstimator(SwarmEstimator):
             out[u] = NodeEstimate(u, k, t, pose.translation().copy(), np.asarray(vel, float).copy(), pc,
                                   np.array([q.w(), q.x(), q.y(), q.z()]))
         return out
+
+    def _add_drag(self, g, vals, ts, u: int, k: int, t: float, inp: EpochInput) -> None:
+        dts = hold_intervals(inp)
+        T = float(dts.sum())
+        if T <= 0:
+            return
+        fbar = (np.asarray(inp.accel, float) * dts[:, None]).sum(axis=0) / T
+        if u not in self._drag_started:
+            self._drag_started.add(u)
+            c0, cs = (fbar[:2], 0.1) if self._rest0[u] else (np.zeros(2), 0.5)
+            m0 = np.r_[self.drag_mu0, c0]
+            g.add(gtsam.PriorFactorVector(M(u), m0, gtsam.noiseModel.Diagonal.Sigmas(np.array([self.drag_mu_sigma, cs, cs]))))
+            vals.insert(M(u), m0)
+        ts[M(u)] = t  # constant state: never leaves the window
+        sig = self.drag_sigma_scale * float(np.sqrt(self.params[u].getAccelerometerCovariance()[0, 0] / T))
+        g.add(rotor_drag_factor(X(u, k), V(u, k), B(u, k), M(u), fbar[:2], sig))
 
     def _position_covariances(self, k: int) -> dict[int, np.ndarray]:
         """Body-frame translation marginals of every UAV's epoch-k pose, from ONE joint marginal

@@ -215,3 +215,35 @@ def whitened_cost(residuals: Sequence[float], sigmas: Sequence[float], weights: 
     """½ Σ w (r/σ)² — the cost an IRLS-weighted link contributes (documentation/testing helper)."""
     r = np.asarray(residuals, float) / np.asarray(sigmas, float)
     return 0.5 * float(np.sum(np.asarray(weights, float) * r * r))
+
+
+def rotor_drag_factor(key_x: int, key_v: int, key_b: int, key_m: int, f_xy: np.ndarray,
+                      sigma: float) -> gtsam.CustomFactor:
+    """Multirotor rotor-drag factor (graph.py ``_drag_factor``, central.py).
+
+    Residual μ(Rᵀv)_xy + (f_xy − b_a,xy) − c on Pose3 ``key_x`` (R), velocity ``key_v`` (ENU),
+    ConstantBias ``key_b`` and the drag state ``key_m`` = [μ, c_x, c_y]; ``f_xy`` = the epoch's mean
+    body-frame horizontal specific force; isotropic σ (m/s²). Analytic Jacobians (right-perturbed
+    pose: d(Rᵀv)/dδθ = [Rᵀv]×), checked against numerical ones in tests/test_graph.py.
+    """
+    fxy = np.asarray(f_xy, float)[:2].copy()
+
+    def err(this, vals, H):
+        P = vals.atPose3(this.keys()[0])
+        vel = vals.atVector(this.keys()[1])
+        ba = vals.atConstantBias(this.keys()[2]).accelerometer()
+        m = vals.atVector(this.keys()[3])
+        Rm = P.rotation().matrix()
+        vb = Rm.T @ vel
+        if H is not None:
+            sk = np.array([[0.0, -vb[2], vb[1]], [vb[2], 0.0, -vb[0]], [-vb[1], vb[0], 0.0]])
+            H[0] = np.hstack([m[0] * sk[:2], np.zeros((2, 3))])
+            H[1] = m[0] * Rm.T[:2]
+            Hb = np.zeros((2, 6))
+            Hb[0, 0] = Hb[1, 1] = -1.0
+            H[2] = Hb
+            H[3] = np.array([[vb[0], -1.0, 0.0], [vb[1], 0.0, -1.0]])
+        return m[0] * vb[:2] + (fxy - ba[:2]) - m[1:3]
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(2, float(sigma)), [key_x, key_v, key_b, key_m], err)
+

@@ -41,6 +41,13 @@ Chi-square isolation (setting ``fkf_isolation``):
 - ``"subfilter"``: only the whole-sub-filter test — one bad link isolates the whole UWB
   sub-filter for the epoch (closest to the paper's description of FKF).
 
+Lock-out guard for fixed-anchor ranges (``fkf_anchor_max_reject`` N, default 3; 0 = off): when N
+of the last 2N anchor ranges failed the χ²₁ test on their own, anchor ranges are fused untested
+(both tests) until the record recovers. Without it a filter that drifted (MILUV: sparse anchor
+ranges, no GNSS) rejected every later anchor range and diverged for good (253 m); anchors are the
+absolute reference there, as GNSS is outdoors (whose isolation is off by default for the same
+reason). No effect where there are no anchors (the simulated scenarios).
+
 Rounds: round 0 (``begin_epoch``) = predicted state + GNSS sub-filter fused, and this node's
 ranges. Round 1 takes the neighbours' round-0 states (GNSS-updated, *before* they used this epoch's
 ranges, so the shared range is not counted twice); later rounds re-linearise the ranges about this
@@ -50,6 +57,8 @@ classic decentralised FKF simplification; consistency measured with NEES in the 
 """
 
 from __future__ import annotations
+
+from collections import deque
 
 import gtsam
 import numpy as np
@@ -138,6 +147,13 @@ class FkfEstimator(NodeEstimator):
         if self.nb_corr not in ("split", "none"):
             raise ValueError(f"fkf_neighbour_corr must be 'split' or 'none', not {self.nb_corr!r}")
         self.anchors = meta.anchors()
+        # chi-square lock-out guard for fixed-anchor ranges (the absolute reference without GNSS):
+        # when N (fkf_anchor_max_reject) of the last 2N anchor ranges failed the test on their own,
+        # the filter, not the ranges, is the suspect (a consistent filter rejects ~0.1 % of clean
+        # ranges at p 0.999), and anchor ranges are fused untested until the record recovers;
+        # 0 disables the guard
+        self.anchor_max_reject = int(s.get("fkf_anchor_max_reject", 3))
+        self._anchor_fails: deque[bool] = deque(maxlen=max(1, 2 * self.anchor_max_reject))
         self.tags_self = {k: np.asarray(v, float) for k, v in node.tags.items()}
         self.tags_all = {n.id: {k: np.asarray(v, float) for k, v in n.tags.items()} for n in meta.nodes}
         # nominal state
@@ -272,20 +288,26 @@ class FkfEstimator(NodeEstimator):
             for m in range(len(links)):
                 links[m][2] += (n_nb - 1) * q[m]
         keep = np.ones(len(r), bool)
+        anchor = np.array([lk[0] in self.anchors for lk in links])
+        # lock-out guard: anchor ranges exempt from both tests while the failure record is at the limit
+        forced = anchor & (self.anchor_max_reject > 0 and sum(self._anchor_fails) >= self.anchor_max_reject)
+        self._anchor_gate = np.zeros(len(r), bool)  # anchor ranges that would pass the test alone
         flags = []
-        if self.isolation == "measurement":
-            thr1 = self._chi2(1)
-            for m, (other, innov, s) in enumerate(links):
-                if innov * innov / s > thr1:
-                    keep[m] = False
+        thr1 = self._chi2(1)
+        for m, (other, innov, s) in enumerate(links):
+            ok = innov * innov / s <= thr1
+            self._anchor_gate[m] = bool(anchor[m] and ok)
+            if self.isolation == "measurement" and not ok and not forced[m]:
+                keep[m] = False
         Rfull = np.diag(Rv)
-        if keep.any():
-            Hk, rk = H[keep], r[keep] - H[keep] @ x_lin  # innovation about the prior (x = 0)
-            S = Hk @ Pu @ Hk.T + Rfull[np.ix_(keep, keep)]
+        tested = keep & ~forced
+        if tested.any():
+            Hk, rk = H[tested], r[tested] - H[tested] @ x_lin  # innovation about the prior (x = 0)
+            S = Hk @ Pu @ Hk.T + Rfull[np.ix_(tested, tested)]
             nis = float(rk @ np.linalg.solve(S, rk))
             self._uwb_nis = nis
-            if nis > self._chi2(int(keep.sum())):
-                keep[:] = False
+            if nis > self._chi2(int(tested.sum())):
+                keep[tested] = False
                 self._uwb_isolated = True
         for m, (other, innov, s) in enumerate(links):
             flags.append(LinkInfo(other, LinkClass.H2_NORMAL if keep[m] else LinkClass.H0_FAILED,
@@ -388,6 +410,11 @@ class FkfEstimator(NodeEstimator):
 
     def end_epoch(self) -> NodeEstimate:
         x = self._x
+        # record of anchor ranges failing the χ² test on their own (lock-out guard, _uwb_subfilter)
+        gate = getattr(self, "_anchor_gate", np.zeros(0, bool))
+        for m, li in enumerate(self._links):
+            if int(li.other) in self.anchors:
+                self._anchor_fails.append(not (m < len(gate) and gate[m]))
         # inject the fused error state into the nominal INS solution and reset (error-state KF)
         rot = self.nav.attitude().compose(gtsam.Rot3.Expmap(x[ATT]))
         self.nav = gtsam.NavState(rot, self.nav.position() + x[POS], self.nav.velocity() + x[VEL])

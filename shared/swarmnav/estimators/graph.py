@@ -69,10 +69,13 @@ from gtsam.symbol_shorthand import B, V, X
 from ..dataset import DatasetMeta, EpochInput
 from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState
 from . import detection as det
-from .factors import stacked_range_factor, wrap_angle
-from .imu import preintegrate, preintegration_params
+from .factors import rotor_drag_factor, stacked_range_factor, wrap_angle
+from .imu import hold_intervals, preintegrate, preintegration_params
 
 __all__ = ["AtvfgEstimator", "FgEstimator", "InsEstimator", "GraphEstimator", "link_sigma"]
+
+
+DRAG_KEY = gtsam.symbol("m", 0)  # rotor-drag state [μ, c_x, c_y] of a multirotor (_drag_factor)
 
 
 def link_sigma(sigma: float, weight: float) -> float:
@@ -100,6 +103,13 @@ class GraphEstimator(NodeEstimator):
         self.uwb_sigma = float(meta.uwb_sigma_m)
         self.rel_sigma = float(meta.rel_sigma_rad) if meta.rel_sigma_rad else None
         dl = s.get("delta_l_m")
+        # a trained Δl is a statistic of residuals at the training data's ranging σ (the file's
+        # uwb_sigma_m); on data whose σ differs by more than delta_l_sigma_tolerance (relative) it
+        # does not apply and the documented fallback (delta_l_fallback_sigmas × σ) is used
+        # (MILUV: trained at 0.10 m, recording 0.19 m -> Δl 0.557 m instead of 0.269 m)
+        dl_sig = s.get("delta_l_uwb_sigma_m")
+        if dl and dl_sig and abs(float(dl_sig) / self.uwb_sigma - 1.0) > float(s.get("delta_l_sigma_tolerance", 0.1)):
+            dl = None
         self.delta_l = float(dl) if dl else float(s.get("delta_l_fallback_sigmas", 3.0)) * self.uwb_sigma
         self.floor_factor = float(s.get("delta_h_floor_factor", det.DEFAULT_FLOOR_FACTOR))
         self.kmeans_backend = str(s.get("kmeans_backend", "exact"))
@@ -182,6 +192,13 @@ class GraphEstimator(NodeEstimator):
         self._at_rest = (bool(s.get("initial_rest_zupt", True)) and float(init.vel_sigma) <= self.rest_max_speed
                          and float(np.linalg.norm(init.vel)) <= self.rest_max_speed)
         self.anchor_time_shift = bool(s.get("anchor_time_shift", True))
+        # multirotor rotor-drag model (nodes whose meta declares airframe "multirotor"): see
+        # _drag_factor; the drag coefficient and the thrust-axis offset are estimated online
+        self.drag = bool(s.get("rotor_drag", True)) and getattr(meta.node(uav), "airframe", None) == "multirotor"
+        self.drag_mu0 = float(s.get("drag_mu_prior", 0.5))
+        self.drag_mu_sigma = float(s.get("drag_mu_prior_sigma", 0.5))
+        self.drag_sigma_scale = float(s.get("drag_sigma_scale", 1.0))
+        self._drag_new = self.drag
         # robust kernel of the known-anchor ranges (whitened threshold k)
         self.anchor_kernel = str(s.get("anchor_kernel", "huber"))
         self.anchor_kernel_k = float(s.get("anchor_kernel_k", 3.0))
@@ -240,6 +257,7 @@ class GraphEstimator(NodeEstimator):
             self.own = self._new_smoother(t, self.pose, self.vel, pos_sigma, vel_sigma, att_sigma)
             self.own_pose, self.own_vel, self.own_bias = self.pose, self.vel.copy(), self.bias
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.bias)
+        self._drag_new = getattr(self, "drag", False)  # a new smoother: M inserted again with its prior
         self.p_loc = np.asarray(pos, float)
         self.P_loc = np.diag(np.maximum(pos_sigma, 1e-3) ** 2)
         self.P_own = self.P_loc.copy()
@@ -278,6 +296,12 @@ class GraphEstimator(NodeEstimator):
         ts = gtsam.FixedLagSmootherKeyTimestampMap()
         for key in (X(n), V(n), B(n)):
             ts.insert((key, inp.t))
+        m0 = None
+        if self.drag:
+            m0 = self._drag_factor(g, n, inp)
+            if m0 is not None:
+                v.insert(DRAG_KEY, m0)
+            ts.insert((DRAG_KEY, inp.t))  # the drag state is constant: never leaves the window
         if self.anchor_gate_p > 0 and self._has_anchor_ranges(inp):
             # innovation gate: predict X(n) (IMU + the epoch's other own factors), test each anchor
             # range against the predicted covariance, then add only the consistent ones
@@ -297,6 +321,8 @@ class GraphEstimator(NodeEstimator):
             vo.insert(X(n), po.pose())
             vo.insert(V(n), po.velocity())
             vo.insert(B(n), self.own_bias)
+            if m0 is not None:
+                vo.insert(DRAG_KEY, m0)
             self.own.update(g, vo, ts)
             est = self.own.calculateEstimate()
             self.own_pose = est.atPose3(X(n))
@@ -324,6 +350,46 @@ class GraphEstimator(NodeEstimator):
         self._last_state = NodeState(self.uav, inp.k, 0, inp.t, self.p.copy(), self._broadcast_cov(),
                                      self.vel.copy(), float("inf"), dict(self.my_ranges), self._own_bearings(inp))
         return self._last_state
+
+    def _drag_factor(self, g, n: int, inp: EpochInput):
+        """Rotor-drag factor of a multirotor on X(n), V(n), B(n) and the drag state M = [μ, c_x, c_y].
+
+        A multirotor's accelerometer measures thrust along the rotor axis plus rotor drag, which
+        opposes the body-frame horizontal velocity: f_xy = −μ·(Rᵀv)_xy + c + b_a,xy, with μ (1/s) the
+        drag coefficient over mass and c the tilt of the IMU relative to the rotor axis (g·sin of the
+        mounting tilt, ~0.5 m/s² for 3°). This makes horizontal velocity observable from the IMU
+        alone — the model behind multicopter drag fusion in PX4's EKF2 (Leishman et al. 2014,
+        "Quadrotors and accelerometers"). Residual μ(Rᵀv)_xy + (f̄ − b_a)_xy − c over the epoch's
+        mean specific force f̄, σ = accel_noise_density / √Δt (the epoch mean of the IMU's white
+        noise; on MILUV the importer's in-flight vibration density) × ``drag_sigma_scale``.
+        M is estimated online: μ prior ``drag_mu_prior`` ± ``drag_mu_prior_sigma`` (0.5 ± 0.5 1/s,
+        loose); c prior = the first epoch's f̄_xy ± 0.1 m/s² when the node starts at rest (standing
+        on its landing gear the rotor axis is the floor normal), else 0 ± 0.5. The factor is off
+        during the initial rest phase (ground contact, not drag). Returns M's initial value on the
+        first call (the caller inserts it), else None."""
+        dts = hold_intervals(inp)
+        T = float(dts.sum())
+        if T <= 0:
+            return None
+        fbar = (np.asarray(inp.accel, float) * dts[:, None]).sum(axis=0) / T
+        m0 = None
+        if self._drag_new:
+            self._drag_new = False
+            c0, cs = (fbar[:2], 0.1) if self._at_rest else (np.zeros(2), 0.5)
+            m0 = np.r_[self.drag_mu0, c0]
+            g.add(gtsam.PriorFactorVector(DRAG_KEY, m0, gtsam.noiseModel.Diagonal.Sigmas(
+                np.array([self.drag_mu_sigma, cs, cs]))))
+        if self._at_rest:
+            return m0
+        sig = self.drag_sigma_scale * float(np.sqrt(self.params.getAccelerometerCovariance()[0, 0] / T))
+        g.add(rotor_drag_factor(X(n), V(n), B(n), DRAG_KEY, fbar[:2], sig))
+        return m0
+
+    def drag_state(self) -> np.ndarray | None:
+        """Current estimate of [μ, c_x, c_y] (None without the drag model)."""
+        if not self.drag or self._drag_new:
+            return None
+        return np.asarray(self.smoother.calculateEstimate().atVector(DRAG_KEY), float)
 
     def _read_estimate(self):
         est = self.smoother.calculateEstimate()

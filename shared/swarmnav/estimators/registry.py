@@ -7,7 +7,9 @@ for (or depends on) the gtsam graph code, and a missing estimator is reported as
 Settings (``estimator_settings``): the scenario's ``[estimation]`` table as a dict, plus
 ``"delta_l_m"``: Δl read from the JSON file named by ``estimation.delta_l_file`` (key
 ``"delta_l_m"``, written by ``swarmnav calibrate``) if that file exists, else ``None`` (each
-estimator then falls back to ``delta_l_fallback_sigmas`` × UWB σ). The same function is used by
+estimator then falls back to ``delta_l_fallback_sigmas`` × UWB σ), and ``"delta_l_uwb_sigma_m"``: the
+ranging σ the file was trained at (its ``uwb_sigma_m``, None if absent) — the graph estimators use
+the trained Δl only on data with that σ (docs/estimators.md, "Δl"). The same function is used by
 the in-process evaluation and the Zenoh node service, so both run with identical settings.
 """
 
@@ -122,6 +124,13 @@ def estimator_settings(estimation, base_dirs: tuple[Path, ...] = ()) -> dict:
     f = s.get("delta_l_file")
     found = resolve_delta_l_file(f, base_dirs) if f else None
     s["delta_l_m"] = read_delta_l(found) if found is not None else None
+    s["delta_l_uwb_sigma_m"] = None
+    if found is not None:
+        try:
+            sig = json.loads(Path(found).read_text()).get("uwb_sigma_m")
+            s["delta_l_uwb_sigma_m"] = float(sig) if sig is not None and float(sig) > 0 else None
+        except (ValueError, TypeError, AttributeError):
+            s["delta_l_uwb_sigma_m"] = None
     return s
 
 
