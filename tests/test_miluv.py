@@ -8,6 +8,7 @@ uwb_range rows, 123 of them the second copy of an inter-UAV transaction logged b
 from __future__ import annotations
 
 import csv
+import os
 from pathlib import Path
 
 import numpy as np
@@ -17,9 +18,12 @@ from swarmnav.dataset import Dataset, EpochSlicer, FaultKind
 from swarmnav.errors import DatasetError
 
 ROOT = Path(__file__).resolve().parents[1]
-SRC = (ROOT / ".." / "shared" / "data" / "miluv" / "cirObstacles_3_random_0").resolve()
+# the recording beside the repository (read-only reference data), or wherever SWARMNAV_MILUV_DIR says
+SRC = Path(os.environ.get("SWARMNAV_MILUV_DIR")
+           or ROOT / ".." / "shared" / "data" / "miluv" / "cirObstacles_3_random_0").resolve()
 
-pytestmark = pytest.mark.skipif(not SRC.is_dir(), reason="MILUV recording not available")
+pytestmark = pytest.mark.skipif(not SRC.is_dir(), reason=f"MILUV recording not available at {SRC} "
+                                "(set SWARMNAV_MILUV_DIR to the cirObstacles_3_random_0 folder)")
 
 
 @pytest.fixture(scope="module")
