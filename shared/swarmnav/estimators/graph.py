@@ -34,23 +34,25 @@ Epoch k (driven by ``swarmnav.protocol``):
     inflation below), so the swarm's rounds behave like a block-Jacobi iteration on the epoch's joint
     problem (all local priors + all links); consistency across epochs is left to the commit.
 ``end_epoch``
-    commit once: the cooperative factors, linearised at the final round position and recomputed
-    with the conservative double-counting inflation, are summarised as one Gaussian position factor
-    (information Λ_c = Σ w JᵀJ/s² × commit_weight, mean from the gradient) and added to the smoother;
-    one update. NodeEstimate (default ``report = "round"``): position = the last round's solution,
-    pos_cov = (P_loc⁻¹ + Λ_c)⁻¹ (conservative), velocity/attitude from the smoother
-    (``report = "smoother"``: the smoother's position, the former behaviour).
+    commit once: the cooperative factors (own-observed ones only: the neighbours' bearings of this
+    node stay in the rounds), linearised at the final round position and recomputed with the
+    double-counting inflation below, are summarised as one Gaussian position factor (information
+    Λ_c = Σ w JᵀJ/s² × ``commit_weight``, default 0.3 — 0.2 in configs/paper.toml — mean from the gradient) and added to the
+    smoother; one update. NodeEstimate (default ``report = "round"``): position = the last round's
+    solution, pos_cov = (P_loc⁻¹ + Λ_c / commit_weight)⁻¹ (``report_cov = "links"``: the split-CI
+    bound, conservative), velocity/attitude from the smoother.
 
-**Double counting.** A neighbour's estimate already contains this node's information. Remedy
-(opt-in ``broadcast_cov = "own"``, documented and measured in docs/estimators.md; the default is
-still ``"local"`` because "own" is not yet validated over the full paper scenario): every node runs
-a second, own-sensor-only smoother (same own factors, never a cooperative one); broadcasts carry
-the cooperative *mean* (good residuals, good linearisation) but the **own-only covariance P_own**,
-so a receiver credits a neighbour only with information from that neighbour's own sensors — a
-master (own 0.5 m GNSS) is trusted nearly fully, a slave (own 5 m) hardly at all: the inflation
-scales with how much of the sender's information is cooperative. Each epoch's cooperative summary
-is committed once with information × ``commit_weight`` (default 1.0). The former scheme
-(``broadcast_cov = "local"``: P_loc × the sender's number of links, commit 0.3) remains available.
+**Double counting.** A neighbour's estimate already contains this node's information. Default
+remedy (``broadcast_cov = "local"``): in the commit a neighbour's broadcast covariance is multiplied
+by its number of links this epoch (split covariance intersection: each of its n links may carry
+information that is also ours), and the summary is committed at ``commit_weight`` (0.3; 0.2 for the
+dense paper swarm), which bounds
+the feedback through the smoothers across epochs (docs/estimators.md: 0.4 gives NEES 1.9 and a worse
+RMSE, 1.0 NEES 92). The rounds themselves use the neighbours' covariance × 0.5
+(``round_cov_inflation``) to approach the epoch's joint solution. Opt-in alternative
+(``broadcast_cov = "own"``, measured worse on the full paper run): a second, own-sensor-only smoother
+per node whose marginal is broadcast as the covariance, so a receiver credits a neighbour only with
+that neighbour's own-sensor information.
 
 Choices: range timestamps inside the epoch are treated as at the epoch time; the node's own tag
 lever arm is applied with its current attitude, a neighbour's is ignored (its attitude is not
@@ -142,10 +144,10 @@ class GraphEstimator(NodeEstimator):
         self.damping = float(s.get("round_damping", 1.0))
         self.commit_mean = str(s.get("commit_mean", "summary"))
         # what the epoch's estimate reports: "smoother" (after the commit) or "round" (the last
-        # round's cooperative solution, with covariance "commit" = (P_loc⁻¹ + w·Λ_commit)⁻¹ or
-        # "round" = (P_loc⁻¹ + Λ_round)⁻¹)
+        # round's cooperative solution, with covariance "commit" = (P_loc⁻¹ + w·Λ_commit)⁻¹,
+        # "links" = (P_loc⁻¹ + Λ_commit)⁻¹ or "round" = (P_loc⁻¹ + Λ_round)⁻¹)
         self.report = str(s.get("report", "round"))
-        self.report_cov = str(s.get("report_cov", "commit"))
+        self.report_cov = str(s.get("report_cov", "links"))
         # ISAM2 relinearises a variable only when its delta exceeds this (any component: rad, m,
         # m/s, bias units); below it the smoother's estimate is one Gauss-Newton step from a stale
         # linearisation point (tests/test_graph.py::test_fixed_lag_matches_batch_solve)
@@ -732,6 +734,10 @@ class GraphEstimator(NodeEstimator):
                     pos = self.p.copy()
                     if self.report_cov == "round":
                         pos_cov = np.linalg.inv(self._normal_equations(self.p)[0])
+                    elif self.report_cov == "links":
+                        # the split-CI bound (neighbour covariance × its links) without the
+                        # commit weight, which only guards the smoother against feedback
+                        pos_cov = np.linalg.inv(self._info + Lam / self.commit_weight)
             for o in self._nb:
                 res, cls = self._res_own.get(o, (float("nan"), int(LinkClass.H2_NORMAL)))
                 links.append(LinkInfo(o, LinkClass(cls), res, float(self._weights[o])))
