@@ -353,3 +353,25 @@ def test_central_drag_only_for_declared_multirotors():
     meta.node(u).airframe = "multirotor"
     assert CentralEstimator(meta, s, inits).drag == {u}
     assert CentralEstimator(meta, {**s, "rotor_drag": False}, inits).drag == set()
+
+
+def test_own_bearings_are_wrapped_and_valid_for_the_state_frame():
+    """The az/el a node broadcasts (round-0 bearings): one per target, azimuth wrapped into
+    [-pi, pi], rows with |elevation| > pi/2 left out — so a peer never rejects the whole state."""
+    from swarmnav.dataset import EpochInput
+    from swarmnav.wire.messages import decode_state, encode_state
+
+    sc = load_config("configs/smoke.toml")
+    ds = simulate(sc, 1)
+    u = ds.meta.uav_ids()[0]
+    est = AtvfgEstimator(u, ds.meta, _settings(sc), initial_states(ds, 1)[u])
+    inp = EpochInput(u, 1, 1.0, 0.0, np.zeros(1), np.zeros((1, 3)), np.zeros((1, 3)),
+                     rel_target=np.array([2, 2, 3, 4]), rel_az=np.array([4.0, 0.1, 0.2, 0.3]),
+                     rel_el=np.array([0.1, 0.2, 1.7, -0.3]), rel_sigma=np.array([0.01, 0.01, 0.01, 0.0]))
+    b = est._own_bearings(inp)
+    assert sorted(b) == [2, 4]
+    assert b[2][0] == pytest.approx(4.0 - 2 * np.pi) and b[2][1] == 0.1  # first row of target 2
+    assert b[4][2] == est.rel_sigma  # sigma 0 in the data -> the nominal sigma
+    from swarmnav.estimators.base import NodeState
+    s = NodeState(u, 1, 0, 1.0, np.zeros(3), np.eye(3), np.zeros(3), float("inf"), {}, b)
+    assert decode_state(encode_state(s), uav=u).bearings == b

@@ -300,10 +300,14 @@ class GraphEstimator(NodeEstimator):
             ts.insert((key, inp.t))
         m0 = None
         if self.drag:
+            drag_in_smoother = not self._drag_new  # before _drag_factor: it may create the state
             m0 = self._drag_factor(g, n, inp)
             if m0 is not None:
                 v.insert(DRAG_KEY, m0)
-            ts.insert((DRAG_KEY, inp.t))  # the drag state is constant: never leaves the window
+            if m0 is not None or drag_in_smoother:
+                # the drag state is constant: its timestamp keeps it in the window (a timestamp for
+                # a key the smoother does not hold yet is an error, e.g. an epoch without IMU data)
+                ts.insert((DRAG_KEY, inp.t))
         if self.anchor_gate_p > 0 and self._has_anchor_ranges(inp):
             # innovation gate: predict X(n) (IMU + the epoch's other own factors), test each anchor
             # range against the predicted covariance, then add only the consistent ones
@@ -346,6 +350,7 @@ class GraphEstimator(NodeEstimator):
         self.peer_ranges: dict[tuple[int, int], float] = {}
         self.peer_links: dict[int, int] = {}
         self.peer_bearings: dict[int, tuple[float, float, float]] = {}
+        self._cache = None  # the rounds' per-epoch structure (_round_cache)
         self.links: list[LinkInfo] = []
         self.Lam = None
         self.delta_h = None
@@ -507,9 +512,12 @@ class GraphEstimator(NodeEstimator):
             return {}
         out: dict[int, tuple[float, float, float]] = {}
         for i, o in enumerate(inp.rel_target):
-            if int(o) != self.uav and int(o) not in out:
+            el = float(inp.rel_el[i])
+            if int(o) != self.uav and int(o) not in out and abs(el) <= np.pi / 2:
                 sg = float(inp.rel_sigma[i]) if inp.rel_sigma[i] > 0 else float(self.rel_sigma)
-                out[int(o)] = (float(inp.rel_az[i]), float(inp.rel_el[i]), sg)
+                # azimuth wrapped into [-pi, pi] (the state frame's range); elevation beyond ±pi/2
+                # is not a direction and is not broadcast
+                out[int(o)] = (float(wrap_angle(float(inp.rel_az[i]))), el, sg)
         return out
 
     # -- rounds ------------------------------------------------------------------------------
