@@ -47,7 +47,7 @@ epoch's residuals.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -59,6 +59,23 @@ DEFAULT_FLOOR_FACTOR = 3.0
 DEFAULT_CEIL_FACTOR = 10.0
 
 
+class RangePairs:
+    """The ranged pairs of an epoch among ``nodes`` (pairs (a, b), a < b, sorted by id — the same
+    order on every node), built once so the residuals can be evaluated on each round's positions."""
+
+    def __init__(self, nodes: Sequence[int], ranges: Mapping[tuple[int, int], float]):
+        idx = {u: i for i, u in enumerate(nodes)}
+        keys = sorted(k for k in ranges if k[0] in idx and k[1] in idx)
+        self.pairs = np.array(keys, np.int64).reshape(-1, 2)
+        self.d = np.array([ranges[k] for k in keys], float)
+        self.ia = np.array([idx[a] for a, _ in keys], int)
+        self.ib = np.array([idx[b] for _, b in keys], int)
+
+    def residuals(self, positions: np.ndarray) -> np.ndarray:
+        """|d_ij − ‖p_i − p_j‖| with ``positions`` (len(nodes), 3) in the order of ``nodes``."""
+        return np.abs(self.d - np.linalg.norm(positions[self.ia] - positions[self.ib], axis=1))
+
+
 def residual_matrix(positions: Mapping[int, np.ndarray], ranges: Mapping[tuple[int, int], float]
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Residuals of every ranged pair whose both ends have a position.
@@ -66,14 +83,11 @@ def residual_matrix(positions: Mapping[int, np.ndarray], ranges: Mapping[tuple[i
     ``ranges`` maps (a, b) with a < b to the measured range. Returns (pairs (m,2) int sorted by
     (a, b), residuals (m,)).
     """
-    keys = sorted(k for k in ranges if k[0] in positions and k[1] in positions)
-    if not keys:
+    nodes = sorted(positions)
+    rp = RangePairs(nodes, ranges)
+    if not len(rp.d):
         return np.zeros((0, 2), np.int64), np.zeros(0)
-    pairs = np.array(keys, np.int64)
-    pa = np.array([positions[a] for a, _ in keys], float)
-    pb = np.array([positions[b] for _, b in keys], float)
-    d = np.array([ranges[k] for k in keys], float)
-    return pairs, np.abs(d - np.linalg.norm(pa - pb, axis=1))
+    return rp.pairs, rp.residuals(np.array([positions[u] for u in nodes], float))
 
 
 def two_means_boundary(x: np.ndarray, backend: str = "exact") -> float | None:

@@ -541,8 +541,7 @@ class GraphEstimator(NodeEstimator):
         weights = {o: 1.0 for o in nb}
         res_own = {}
         if self.detect and nb:
-            pairs = c["pairs"]
-            res = np.abs(c["d"] - np.linalg.norm(P[c["ia"]] - P[c["ib"]], axis=1))
+            res = c["pairs"].residuals(P)
             self.delta_h, cls, w = det.detect(res, self.delta_l, self.window, self.floor_factor,
                                                  self.kmeans_backend, self.ceil_factor, self.cap_h1)
             if self.eq24_on == "residual":
@@ -595,9 +594,8 @@ class GraphEstimator(NodeEstimator):
         ranges = dict(self.peer_ranges)
         for o, d in self.my_ranges.items():
             ranges[(min(self.uav, o), max(self.uav, o))] = d
-        keys = sorted(k for k in ranges if k[0] in idx and k[1] in idx)
-        pairs = np.array(keys, np.int64).reshape(-1, 2)
-        mine = [i for i, (a, b) in enumerate(keys) if self.uav in (a, b)]
+        pairs = det.RangePairs(nodes, ranges)
+        mine = [i for i, (a, b) in enumerate(pairs.pairs.tolist()) if self.uav in (a, b)]
         nb = sorted(o for o in self._rows if o in peers)
         rows, owner = [], []
         for o in nb:
@@ -605,10 +603,9 @@ class GraphEstimator(NodeEstimator):
             owner.extend([o] * len(self._rows[o]))
         rows = np.array(rows, int)
         Rm = self.pose.rotation().matrix()
+        pl = pairs.pairs.tolist()
         c = {"key": key, "k": self.k, "nodes": nodes, "idx": idx, "pairs": pairs,
-             "d": np.array([ranges[k] for k in keys], float),
-             "ia": np.array([idx[a] for a, _ in keys], int), "ib": np.array([idx[b] for _, b in keys], int),
-             "mine": mine, "mine_other": [int(keys[i][1] if keys[i][0] == self.uav else keys[i][0]) for i in mine],
+             "mine": mine, "mine_other": [int(pl[i][1] if pl[i][0] == self.uav else pl[i][0]) for i in mine],
              "nb": nb, "rng_owner": np.array(owner, int), "rng_node": np.array([idx[o] for o in owner], int)}
         if len(rows):
             c["rng_lever"] = np.array([self.tags.get(int(t), np.zeros(3)) for t in inp.range_tag_self[rows]]) @ Rm.T
