@@ -104,8 +104,6 @@ class Monitor:
         self.R.log_event(kind, uav, self.t_now, rec=self.rec)
 
     def handle(self, tag, item):
-        if tag == "_wake":
-            return
         kk = parse_key(item.key_expr, self.rejects)
         if kk is None:
             return

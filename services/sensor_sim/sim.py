@@ -116,8 +116,6 @@ class SensorSim:
         return M.init_to_msg(u, restart_initial_state(self.truth, self.inits, self.uavs, self.a.seed, u, max(self.k, 1)))
 
     def handle(self, tag, item):
-        if tag == "_wake":
-            return
         if tag == "q":
             try:
                 kk = keys.parse(str(item.key_expr))

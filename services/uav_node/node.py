@@ -115,8 +115,6 @@ class Node:
 
     # -- inbox handling (light: decode + buffer) -------------------------------------------
     def handle(self, tag, item):
-        if tag == "_wake":
-            return
         if tag == "alive":
             try:
                 kk = keys.parse(str(item.key_expr))
@@ -135,12 +133,9 @@ class Node:
         if tag == "query":
             self.answer(item)
             return
-        key = str(item.key_expr)
         payload = item.payload.to_bytes()
-        try:
-            kk = keys.parse(key)
-        except ValueError as e:
-            self.rejects.add(key, M.WireError("bad_key", str(e)))
+        kk = parse_key(item.key_expr, self.rejects)
+        if kk is None:
             return
         if tag == "clock":
             try:

@@ -68,6 +68,7 @@ import numpy as np
 import gtsam
 from gtsam.symbol_shorthand import B, V, X
 
+from ..calibration import fallback_delta_l
 from ..dataset import DatasetMeta, EpochInput
 from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState
 from . import detection as det
@@ -112,7 +113,7 @@ class GraphEstimator(NodeEstimator):
         dl_sig = s.get("delta_l_uwb_sigma_m")
         if dl and dl_sig and abs(float(dl_sig) / self.uwb_sigma - 1.0) > float(s.get("delta_l_sigma_tolerance", 0.1)):
             dl = None
-        self.delta_l = float(dl) if dl else float(s.get("delta_l_fallback_sigmas", 3.0)) * self.uwb_sigma
+        self.delta_l = float(dl) if dl else fallback_delta_l(self.uwb_sigma, s.get("delta_l_fallback_sigmas", 3.0))
         self.floor_factor = float(s.get("delta_h_floor_factor", det.DEFAULT_FLOOR_FACTOR))
         self.kmeans_backend = str(s.get("kmeans_backend", "exact"))
         # Δh ceiling (× Δl) with 2-means descent, and the (Δl/∂)² cap on H1 weights (detection.py)

@@ -104,7 +104,8 @@ def resolve_delta_l_file(path: str | Path, base_dirs: tuple[Path, ...] = ()) -> 
     return None
 
 
-def read_delta_l(path: Path) -> float:
+def read_delta_l(path: Path) -> tuple[float, float | None]:
+    """(Δl in m, the ranging σ in m it was trained at, or None when the file does not say)."""
     try:
         data = json.loads(Path(path).read_text())
         v = float(data["delta_l_m"])
@@ -112,25 +113,23 @@ def read_delta_l(path: Path) -> float:
         raise ConfigError(f"{path}: cannot read Δl (expected JSON with key 'delta_l_m'): {e}") from None
     if not v > 0:
         raise ConfigError(f"{path}: delta_l_m must be a positive number of metres, got {v}")
-    return v
+    try:
+        sig = float(data.get("uwb_sigma_m"))
+    except (TypeError, ValueError):
+        sig = None
+    return v, (sig if sig is not None and sig > 0 else None)
 
 
 def estimator_settings(estimation, base_dirs: tuple[Path, ...] = ()) -> dict:
-    """Settings dict for every estimator: ``estimation.model_dump()`` + ``delta_l_m`` (or None).
+    """Settings dict for every estimator: ``estimation.model_dump()`` + ``delta_l_m`` (or None) and
+    ``delta_l_uwb_sigma_m`` (the ranging σ of Δl's training data, or None).
 
     ``estimation`` is a :class:`swarmnav.config.Estimation` (or a plain dict of its fields).
     """
     s = dict(estimation.model_dump() if hasattr(estimation, "model_dump") else estimation)
     f = s.get("delta_l_file")
     found = resolve_delta_l_file(f, base_dirs) if f else None
-    s["delta_l_m"] = read_delta_l(found) if found is not None else None
-    s["delta_l_uwb_sigma_m"] = None
-    if found is not None:
-        try:
-            sig = json.loads(Path(found).read_text()).get("uwb_sigma_m")
-            s["delta_l_uwb_sigma_m"] = float(sig) if sig is not None and float(sig) > 0 else None
-        except (ValueError, TypeError, AttributeError):
-            s["delta_l_uwb_sigma_m"] = None
+    s["delta_l_m"], s["delta_l_uwb_sigma_m"] = read_delta_l(found) if found is not None else (None, None)
     return s
 
 

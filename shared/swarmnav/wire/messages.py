@@ -267,11 +267,16 @@ def decode(cls: type[Msg], payload: bytes | str, *, uav: int | None = None, min_
     except ValidationError as e:
         err = e.errors()[0]
         raise WireError("invalid", f"{'.'.join(map(str, err['loc']))}: {err['msg']}") from None
-    if uav is not None and getattr(m, "uav", uav) != uav:
-        raise WireError("wrong_uav", f"message about UAV {m.uav} on UAV {uav}'s key")
-    if min_k is not None and getattr(m, "k", min_k) < min_k:
-        raise WireError("stale", f"epoch {m.k} < {min_k}")
+    _check_scope(getattr(m, "uav", uav), getattr(m, "k", min_k), uav, min_k)
     return m
+
+
+def _check_scope(u, k, uav: int | None, min_k: int | None) -> None:
+    """WireError if a message about UAV ``u``, epoch ``k`` is not for ``uav`` or older than ``min_k``."""
+    if uav is not None and u != uav:
+        raise WireError("wrong_uav", f"message about UAV {u} on UAV {uav}'s key")
+    if min_k is not None and k < min_k:
+        raise WireError("stale", f"epoch {k} < {min_k}")
 
 
 class Rejects:
@@ -459,10 +464,7 @@ def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = 
     if m and not ((np.abs(bear[:, 0]) <= np.pi).all() and (np.abs(bear[:, 1]) <= np.pi / 2).all()
                   and (bear[:, 2] > 0).all()):
         raise WireError("invalid", "bearing out of range (|az| <= pi, |el| <= pi/2, sigma > 0)")
-    if uav is not None and u != uav:
-        raise WireError("wrong_uav", f"message about UAV {u} on UAV {uav}'s key")
-    if min_k is not None and k < min_k:
-        raise WireError("stale", f"epoch {k} < {min_k}")
+    _check_scope(u, k, uav, min_k)
     return NodeState(uav=u, k=k, r=r, t=float(f[0]), pos=f[1:4].copy(), pos_cov=f[4:13].reshape(3, 3).copy(),
                      vel=f[13:16].copy(), delta_m=float(f[16]), ranges=dict(zip(ids[:n].tolist(), rng.tolist())),
                      bearings={int(o): (float(b[0]), float(b[1]), float(b[2])) for o, b in zip(ids[n:].tolist(), bear)})
