@@ -35,6 +35,14 @@ class LinkClass(IntEnum):
     H2_NORMAL = 2  # residual <= Δl: full weight
 
 
+def tuned_settings(settings: dict | None) -> dict:
+    """The estimator settings with the optional ``[estimation.graph]`` table (``settings["graph"]``:
+    tuning overrides by settings key) merged over the top level — one place for every estimator."""
+    s = dict(settings or {})
+    s.update(s.get("graph") or {})
+    return s
+
+
 @dataclass
 class NodeState:
     """What a node broadcasts each round. Positions ENU m, velocities ENU m/s."""

@@ -24,9 +24,9 @@ import gtsam
 import numpy as np
 
 from ..dataset import DatasetMeta, EpochInput, FaultKind
-from .base import InitialState, NodeEstimate, SwarmEstimator
-from .factors import rotor_drag_factor
-from .imu import hold_intervals, preintegrate, preintegration_params
+from .base import InitialState, NodeEstimate, SwarmEstimator, tuned_settings
+from .factors import rotor_drag_factor, rotor_drag_prior
+from .imu import mean_specific_force, preintegrate, preintegration_params
 
 
 def X(u: int, k: int) -> int:
@@ -134,7 +134,7 @@ class CentralEstimator(SwarmEstimator):
     name = "central"
 
     def __init__(self, meta: DatasetMeta, settings: dict, inits: dict[int, InitialState]):
-        s = settings or {}
+        s = tuned_settings(settings)  # [estimation.graph] overrides merged, as for graph.py
         self.meta = meta
         self.uavs = sorted(inits)
         # own lag (not the distributed estimators' ``fixed_lag_s``): the joint window is dense (every
@@ -178,7 +178,9 @@ class CentralEstimator(SwarmEstimator):
         self.drag_mu_sigma = float(s.get("drag_mu_prior_sigma", 0.5))
         self.drag_sigma_scale = float(s.get("drag_sigma_scale", 1.0))
         self._drag_started: set[int] = set()
-        self._rest0 = {u: float(inits[u].vel_sigma) <= 0.1 and float(np.linalg.norm(inits[u].vel)) <= 0.1 for u in self.uavs}
+        rest = float(s.get("rest_max_speed_mps", 0.1))  # graph.py's initial-rest test
+        self._rest0 = {u: float(inits[u].vel_sigma) <= rest and float(np.linalg.norm(inits[u].vel)) <= rest
+                       for u in self.uavs}
         self.k = 0
         self.dropped = 0  # ranges removed by the oracle so far
         self.nav: dict[int, gtsam.NavState] = {}
@@ -262,16 +264,14 @@ class CentralEstimator(SwarmEstimator):
         return out
 
     def _add_drag(self, g, vals, ts, u: int, k: int, t: float, inp: EpochInput) -> None:
-        dts = hold_intervals(inp)
-        T = float(dts.sum())
-        if T <= 0:
+        mf = mean_specific_force(inp)
+        if mf is None:
             return
-        fbar = (np.asarray(inp.accel, float) * dts[:, None]).sum(axis=0) / T
+        fbar, T = mf
         if u not in self._drag_started:
             self._drag_started.add(u)
-            c0, cs = (fbar[:2], 0.1) if self._rest0[u] else (np.zeros(2), 0.5)
-            m0 = np.r_[self.drag_mu0, c0]
-            g.add(gtsam.PriorFactorVector(M(u), m0, gtsam.noiseModel.Diagonal.Sigmas(np.array([self.drag_mu_sigma, cs, cs]))))
+            prior, m0 = rotor_drag_prior(M(u), self.drag_mu0, self.drag_mu_sigma, fbar[:2], self._rest0[u])
+            g.add(prior)
             vals.insert(M(u), m0)
         ts[M(u)] = t  # constant state: never leaves the window
         sig = self.drag_sigma_scale * float(np.sqrt(self.params[u].getAccelerometerCovariance()[0, 0] / T))

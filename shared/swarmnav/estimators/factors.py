@@ -31,6 +31,7 @@ import gtsam
 import numpy as np
 
 __all__ = [
+    "rotor_drag_prior",
     "wrap_angle",
     "range_h",
     "azel_h",
@@ -215,6 +216,15 @@ def whitened_cost(residuals: Sequence[float], sigmas: Sequence[float], weights: 
     """½ Σ w (r/σ)² — the cost an IRLS-weighted link contributes (documentation/testing helper)."""
     r = np.asarray(residuals, float) / np.asarray(sigmas, float)
     return 0.5 * float(np.sum(np.asarray(weights, float) * r * r))
+
+
+def rotor_drag_prior(key_m: int, mu0: float, mu_sigma: float, f_xy0: np.ndarray, at_rest: bool):
+    """Prior on a multirotor's drag state M = [μ, c_x, c_y]: μ0 ± mu_sigma; c = the first epoch's
+    mean f_xy ± 0.1 m/s² for a vehicle that starts at rest on its landing gear (the rotor axis is
+    then the floor normal), else 0 ± 0.5. Returns (factor, initial value of M)."""
+    c0, cs = (np.asarray(f_xy0, float), 0.1) if at_rest else (np.zeros(2), 0.5)
+    m0 = np.r_[mu0, c0]
+    return gtsam.PriorFactorVector(key_m, m0, gtsam.noiseModel.Diagonal.Sigmas(np.array([mu_sigma, cs, cs]))), m0
 
 
 def rotor_drag_factor(key_x: int, key_v: int, key_b: int, key_m: int, f_xy: np.ndarray,

@@ -70,10 +70,10 @@ from gtsam.symbol_shorthand import B, V, X
 
 from ..calibration import fallback_delta_l
 from ..dataset import DatasetMeta, EpochInput
-from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState
+from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState, tuned_settings
 from . import detection as det
-from .factors import rotor_drag_factor, stacked_range_factor, wrap_angle
-from .imu import hold_intervals, preintegrate, preintegration_params
+from .factors import rotor_drag_factor, rotor_drag_prior, stacked_range_factor, wrap_angle
+from .imu import mean_specific_force, preintegrate, preintegration_params
 
 __all__ = ["AtvfgEstimator", "FgEstimator", "InsEstimator", "GraphEstimator", "link_sigma"]
 
@@ -99,9 +99,7 @@ class GraphEstimator(NodeEstimator):
 
     def __init__(self, uav: int, meta: DatasetMeta, settings: dict, init: InitialState):
         super().__init__(uav, meta, settings, init)
-        s = dict(settings or {})
-        s.update(s.get("graph") or {})  # optional [estimation.graph] table: estimator tuning overrides
-        settings = s
+        s = settings = tuned_settings(settings)  # [estimation.graph] overrides merged
         self.lag = float(s.get("fixed_lag_s", 5.0))
         self.uwb_sigma = float(meta.uwb_sigma_m)
         self.rel_sigma = float(meta.rel_sigma_rad) if meta.rel_sigma_rad else None
@@ -167,24 +165,24 @@ class GraphEstimator(NodeEstimator):
         # Conditioning: the tiny bias random walks of a good IMU (~1e-7 rad/s/sqrt(s)) make the
         # CombinedImuFactor's bias block ~1e14 times stiffer than the rest and ISAM2 reports an
         # indeterminate system; floor them (documented tuning, settings "bias_rw_floor").
-        fg_, fa_ = (settings or {}).get("bias_rw_floor", (1e-5, 1e-4))
+        fg_, fa_ = s.get("bias_rw_floor", (1e-5, 1e-4))
         self.params.setBiasOmegaCovariance(np.eye(3) * max(node.imu.gyro_bias_rw, fg_) ** 2)
         self.params.setBiasAccCovariance(np.eye(3) * max(node.imu.accel_bias_rw, fa_) ** 2)
         # the dataset's reported GNSS sigma already includes the receiver's time-correlated part
-        self.gnss_extra_var = float((settings or {}).get("gnss_extra_var_m2", 0.0))
-        self.commit_weight = float((settings or {}).get("commit_weight", 0.3))
+        self.gnss_extra_var = float(s.get("gnss_extra_var_m2", 0.0))
+        self.commit_weight = float(s.get("commit_weight", 0.3))
         # GNSS sigma × gnss_sigma_scale covers a receiver's time-correlated (Gauss–Markov) error,
         # which the smoother would otherwise average as if white. Applied only where the dataset
         # says there is such an error (node.gnss_correlated_sigma_m > 0) or does not say (None); a
         # declared white-noise receiver (0) is used at its stated sigma.
-        self.gnss_scale = float((settings or {}).get("gnss_sigma_scale", 2.5))
+        self.gnss_scale = float(s.get("gnss_sigma_scale", 2.5))
         if node.gnss_correlated_sigma_m == 0:
             self.gnss_scale = 1.0
         # per-role override (explicit tuning)
-        role_scale = ((settings or {}).get("gnss_sigma_scale_by_role", {}) or {}).get(str(meta.node(uav).role))
+        role_scale = (s.get("gnss_sigma_scale_by_role", {}) or {}).get(str(meta.node(uav).role))
         if role_scale is not None:
             self.gnss_scale = float(role_scale)
-        self.own_cov_scale = float((settings or {}).get("own_cov_scale", 1.0))
+        self.own_cov_scale = float(s.get("own_cov_scale", 1.0))
         # initial rest phase (zero-velocity prior): a node that starts at rest (|init.vel| and
         # init.vel_sigma <= rest_max_speed) holds V = 0 until its IMU first shows motion
         self.zupt_sigma = float(s.get("zupt_sigma_mps", 0.02))
@@ -375,18 +373,15 @@ class GraphEstimator(NodeEstimator):
         on its landing gear the rotor axis is the floor normal), else 0 ± 0.5. The factor is off
         during the initial rest phase (ground contact, not drag). Returns M's initial value on the
         first call (the caller inserts it), else None."""
-        dts = hold_intervals(inp)
-        T = float(dts.sum())
-        if T <= 0:
+        mf = mean_specific_force(inp)
+        if mf is None:
             return None
-        fbar = (np.asarray(inp.accel, float) * dts[:, None]).sum(axis=0) / T
+        fbar, T = mf
         m0 = None
         if self._drag_new:
             self._drag_new = False
-            c0, cs = (fbar[:2], 0.1) if self._at_rest else (np.zeros(2), 0.5)
-            m0 = np.r_[self.drag_mu0, c0]
-            g.add(gtsam.PriorFactorVector(DRAG_KEY, m0, gtsam.noiseModel.Diagonal.Sigmas(
-                np.array([self.drag_mu_sigma, cs, cs]))))
+            prior, m0 = rotor_drag_prior(DRAG_KEY, self.drag_mu0, self.drag_mu_sigma, fbar[:2], self._at_rest)
+            g.add(prior)
         if self._at_rest:
             return m0
         sig = self.drag_sigma_scale * float(np.sqrt(self.params.getAccelerometerCovariance()[0, 0] / T))

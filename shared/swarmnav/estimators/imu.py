@@ -40,6 +40,16 @@ def hold_intervals(inp: EpochInput) -> np.ndarray:
     return np.clip(end - start, 0.0, None)
 
 
+def mean_specific_force(inp: EpochInput) -> tuple[np.ndarray, float] | None:
+    """The epoch's time-weighted mean specific force (body frame, m/s²) and the IMU time T (s) it
+    covers; None when no sample is in force inside the epoch."""
+    dts = hold_intervals(inp)
+    T = float(dts.sum())
+    if T <= 0:
+        return None
+    return (np.asarray(inp.accel, float) * dts[:, None]).sum(axis=0) / T, T
+
+
 def preintegrate(pim: gtsam.PreintegratedCombinedMeasurements, inp: EpochInput) -> gtsam.PreintegratedCombinedMeasurements:
     """Integrate the epoch's samples into ``pim`` (reset by the caller). Returns ``pim``."""
     dts = hold_intervals(inp)
