@@ -9,7 +9,6 @@ endpoints and its zid, and holds it open until SIGINT/SIGTERM, then closes it.
 from __future__ import annotations
 
 import argparse
-import json
 import signal
 import threading
 from pathlib import Path
@@ -26,11 +25,9 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     import zenoh
 
-    conf = zenoh.Config.from_file(a.config)
-    conf.insert_json5("mode", '"router"')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    if a.listen:
-        conf.insert_json5("listen/endpoints", json.dumps(a.listen))
+    from deploy.zconf import router_config
+
+    conf = router_config(a.listen or None, a.config)  # the file's settings + the shared base (zconf._base)
     stop = threading.Event()
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, lambda *_: stop.set())

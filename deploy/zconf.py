@@ -31,13 +31,17 @@ def _base(conf) -> None:
     conf.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop", str(DROP_WAIT_US))
 
 
-def router_config(listen: list[str], config_file: str | None = None):
+def router_config(listen: list[str] | None, config_file: str | None = None):
+    """Router-mode config: ``listen`` replaces the listen endpoints (None keeps the file's); without
+    a file the router connects nowhere (the embedded router of ``swarmnav launch``)."""
     import zenoh
 
     conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
     conf.insert_json5("mode", '"router"')
-    conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    conf.insert_json5("connect/endpoints", "[]")
+    if listen is not None:
+        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if not config_file:
+        conf.insert_json5("connect/endpoints", "[]")
     _base(conf)
     return conf
 

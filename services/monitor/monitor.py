@@ -75,7 +75,6 @@ class Monitor:
         self.truth_rx = np.full((self.K, n, 3), np.nan)
         self.sent_est = np.zeros((self.K, n), bool)
         self.sent_truth = np.zeros((self.K, n), bool)
-        self.sent_err1 = np.zeros(self.K, bool)
         self.swarm_err = np.full((self.K, 2), np.nan)
         self.link_rows: list[tuple[int, list]] = []
         self.sent_k = 0
@@ -206,20 +205,21 @@ class Monitor:
         received since the last batch, whatever their epoch; series and links: the closed epochs)."""
         R, a, rec, t = self.R, self.a.algo, self.rec, self.truth.t
         ks = np.arange(1, self.K + 1)
-        for arr, sent, name, radius in ((self.res.pos, self.sent_est, a, 2.0), (self.truth_rx, self.sent_truth, "truth", 2.0)):
+        sent_now = []
+        for arr, sent, name in ((self.res.pos, self.sent_est, a), (self.truth_rx, self.sent_truth, "truth")):
             new = np.all(np.isfinite(arr), axis=2) & ~sent
             for j, u in enumerate(self.uavs):
                 m = new[:, j]
                 if m.any():
-                    R.send_positions(name, u, t[m], ks[m], arr[m, j], rec=rec, radius=radius)
+                    R.send_positions(name, u, t[m], ks[m], arr[m, j], rec=rec)
             sent |= new
-        j1 = self.uavs.index(1) if 1 in self.uavs else None
-        if j1 is not None:
-            m = self.sent_est[:, j1] & ~self.sent_err1
+            sent_now.append(new)
+        if 1 in self.uavs:  # UAV 1's error series: the estimates sent in this batch
+            j1 = self.uavs.index(1)
+            m = sent_now[0][:, j1]
             if m.any():
                 e1 = np.linalg.norm(self.res.pos[m, j1] - self.truth.pos[m, j1], axis=1)
                 R.send_series(R.error_path(a, "pos_3d", "uav1"), t[m], ks[m], e1, rec=rec)
-                self.sent_err1 |= m
         lo, hi = self.sent_k, self.logged_k
         if hi > lo:
             sl = slice(lo, hi)

@@ -106,8 +106,8 @@ class SensorSim:
         import zenoh
 
         bl = zenoh.CongestionControl.BLOCK
-        self.pubs = {(u, t): self.s.declare_publisher(keys.uav(self.run, u, t), congestion_control=bl)
-                     for u in self.uavs for t in keys.SENSOR_TOPICS}
+        self.pub_input = {u: self.s.declare_publisher(keys.uav(self.run, u, "input"), congestion_control=bl)
+                          for u in self.uavs}
         self.pub_truth = {u: self.s.declare_publisher(keys.truth(self.run, u), congestion_control=bl) for u in self.uavs}
         self.pub_clock = self.s.declare_publisher(keys.clock(self.run), congestion_control=bl)
         self.token = self.s.liveliness().declare_token(keys.alive(self.run, "sensor_sim", 0))
@@ -173,8 +173,8 @@ class SensorSim:
         bad_input = b"SNI" + bytes([M.SCHEMA_VERSION + 1]) + bytes(8)  # a binary frame of an unknown version
         bad_state = b"SNS" + bytes([M.SCHEMA_VERSION]) + bytes(13)  # a truncated state frame
         for u in self.uavs:
-            for i, payload in enumerate(bad + [bad_input]):
-                self.pubs[(u, "input")].put(payload)
+            for payload in bad + [bad_input]:
+                self.pub_input[u].put(payload)
             self.s.put(keys.uav(self.run, u, "state"), bad_state)
         self.pub_clock.put(b'{"v": 1, "k": -3}')
         self.log.info("garbage published at epoch %d", k)
@@ -220,7 +220,7 @@ class SensorSim:
                 self.pub_truth[u].put(tm.encode())
                 b = M.encode_input(self.slicer.epoch(k, u), part)
                 self.bytes_per_uav += len(b)
-                self.pubs[(u, "input")].put(b)
+                self.pub_input[u].put(b)
             if not a.rate:
                 self.wait_until(lambda: all(u in self.estimates.get(k, ()) or u not in self.alive_uav for u in part),
                                 a.epoch_timeout, f"estimates of epoch {k}")

@@ -237,7 +237,6 @@ class Node:
             self.waiting = ((k, r), expect)  # the state pump wakes us once all of these are in
             missing = sorted(expect - set(have))
             if not missing:
-                self.waiting = None
                 break
             waited = time.monotonic() - t0
             if waited > self.peer_timeout * 10:
