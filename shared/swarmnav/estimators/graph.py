@@ -9,9 +9,8 @@ Own-factor details for sparse ranging without GNSS (docs/miluv.md, "Third pass")
 taken at t_r inside the epoch is fused at the epoch time t with the anchor moved by v_pred·(t − t_r)
 (``anchor_time_shift``, default on); a node that starts at rest (|init.vel|, init.vel_sigma ≤
 ``rest_max_speed_mps``) holds a zero-velocity prior (``zupt_sigma_mps``) until its IMU first shows
-motion (``_still``; ``initial_rest_zupt``, default on). Opt-in and measured worse on MILUV: an
-innovation gate of anchor ranges against the predicted covariance (``anchor_gate_p``) and a
-redescending anchor kernel (``anchor_kernel`` cauchy/tukey/gm; default huber, k 3).
+motion (``_still``; ``initial_rest_zupt``, default on). A redescending anchor kernel
+(``anchor_kernel`` cauchy/tukey/gm; default huber, k 3) is available and measured worse on MILUV.
 
 Epoch k (driven by ``swarmnav.protocol``):
 
@@ -49,10 +48,9 @@ information that is also ours), and the summary is committed at ``commit_weight`
 dense paper swarm), which bounds
 the feedback through the smoothers across epochs (docs/estimators.md: 0.4 gives NEES 1.9 and a worse
 RMSE, 1.0 NEES 92). The rounds themselves use the neighbours' covariance × 0.5
-(``round_cov_inflation``) to approach the epoch's joint solution. Opt-in alternative
-(``broadcast_cov = "own"``, measured worse on the full paper run): a second, own-sensor-only smoother
-per node whose marginal is broadcast as the covariance, so a receiver credits a neighbour only with
-that neighbour's own-sensor information.
+(``round_cov_inflation``) to approach the epoch's joint solution. Alternatives measured and removed
+(own-sensor-only broadcast covariance, sticky detection, eq. 25 literal weights, joint commit mean,
+round damping, an anchor innovation gate): docs/estimators.md.
 
 Choices: range timestamps inside the epoch are treated as at the epoch time; the node's own tag
 lever arm is applied with its current attitude, a neighbour's is ignored (its attitude is not
@@ -127,21 +125,15 @@ class GraphEstimator(NodeEstimator):
         # observation enters the smoothers once, by its observer); "commit" = also committed;
         # "off" = not used
         self.reverse_azel = str(s.get("reverse_azel", "rounds"))
-        # what a broadcast's covariance is: "own" = the node's own-sensor-only marginal (a second,
-        # non-cooperative smoother), "local" = the cooperative smoother's marginal before this
-        # epoch's cooperative information (the former default). See "Double counting" above.
-        self.bcast_cov = str(s.get("broadcast_cov", "local"))
-        ci = s.get("neighbour_cov_inflation", 1.0 if self.bcast_cov == "own" else "links")
+        # a broadcast's covariance is the smoother's marginal before this epoch's cooperative
+        # information; the commit inflates it per sender (see "Double counting" above)
+        ci = s.get("neighbour_cov_inflation", "links")
         self.cov_infl = None if ci == "links" else float(ci)  # None: per sender, its number of links
         self.gn_iters = int(s.get("gn_iterations", 2))
-        # joint-snapshot rounds (opt-in): the per-round solve uses the neighbours' broadcasts with
-        # round_cov_inflation (None = the commit's inflation above) and damping; the commit then
-        # ("commit_mean" = "joint") moves the smoother's mean to the round solution with the
-        # conservative (commit-inflation) information, instead of fusing the summary's own mean
+        # joint-snapshot rounds: the per-round solve uses the neighbours' broadcasts with
+        # round_cov_inflation (None = the commit's inflation above)
         ri = s.get("round_cov_inflation", 0.5)
         self.round_infl = None if ri is None or ri == "" else float(ri)
-        self.damping = float(s.get("round_damping", 1.0))
-        self.commit_mean = str(s.get("commit_mean", "summary"))
         # what the epoch's estimate reports: "smoother" (after the commit) or "round" (the last
         # round's cooperative solution, with covariance "commit" = (P_loc⁻¹ + w·Λ_commit)⁻¹,
         # "links" = (P_loc⁻¹ + Λ_commit)⁻¹ or "round" = (P_loc⁻¹ + Λ_round)⁻¹)
@@ -151,8 +143,6 @@ class GraphEstimator(NodeEstimator):
         # m/s, bias units); below it the smoother's estimate is one Gauss-Newton step from a stale
         # linearisation point (tests/test_graph.py::test_fixed_lag_matches_batch_solve)
         self.relin_thresh = float(s.get("relinearize_threshold", 0.05))
-        self.sticky = bool(s.get("sticky_detection", False))
-        self.eq24_on = str(s.get("eq24_applies_to", "squared"))  # "residual" (eq. 25) | "squared"
         # K-means pool: fixed window if residual_window_epochs > 1, else adaptive (>= 16 residuals,
         # at most 30 epochs; the paper's ~150 per epoch -> current epoch only)
         self.window = det.ResidualWindow(int(s.get("residual_window_epochs", 1)),
@@ -182,7 +172,6 @@ class GraphEstimator(NodeEstimator):
         role_scale = (s.get("gnss_sigma_scale_by_role", {}) or {}).get(str(meta.node(uav).role))
         if role_scale is not None:
             self.gnss_scale = float(role_scale)
-        self.own_cov_scale = float(s.get("own_cov_scale", 1.0))
         # initial rest phase (zero-velocity prior): a node that starts at rest (|init.vel| and
         # init.vel_sigma <= rest_max_speed) holds V = 0 until its IMU first shows motion
         self.zupt_sigma = float(s.get("zupt_sigma_mps", 0.02))
@@ -203,14 +192,6 @@ class GraphEstimator(NodeEstimator):
         # robust kernel of the known-anchor ranges (whitened threshold k)
         self.anchor_kernel = str(s.get("anchor_kernel", "huber"))
         self.anchor_kernel_k = float(s.get("anchor_kernel_k", 3.0))
-        # anchor-range innovation gate (χ²₁ probability; 0 = off)
-        self.anchor_gate_p = float(s.get("anchor_gate_p", 0.0))
-        self.anchor_gate_max_reject = int(s.get("anchor_gate_max_reject", 3))
-        self._gate_rejects = 0
-        self.gate_log = []
-        if self.anchor_gate_p > 0:
-            from scipy.stats import chi2
-            self._gate_thr = float(chi2.ppf(self.anchor_gate_p, 1))
         imu = node.imu
         self.bias_sigmas = np.r_[[max(imu.accel_bias_sigma, 1e-4)] * 3, [max(imu.gyro_bias_sigma, 1e-6)] * 3]
         self._reset(init.t, init.pos, init.vel, init.quat, np.asarray(init.pos_sigma, float),
@@ -251,17 +232,10 @@ class GraphEstimator(NodeEstimator):
         self.vel = np.asarray(vel, float)
         self.bias = gtsam.imuBias.ConstantBias()
         self.smoother = self._new_smoother(t, self.pose, self.vel, pos_sigma, vel_sigma, att_sigma)
-        # own-sensor-only smoother (same own factors, never a cooperative one): its marginal is the
-        # covariance this node broadcasts when broadcast_cov = "own"
-        self.own = None
-        if self.cooperative and self.bcast_cov == "own":
-            self.own = self._new_smoother(t, self.pose, self.vel, pos_sigma, vel_sigma, att_sigma)
-            self.own_pose, self.own_vel, self.own_bias = self.pose, self.vel.copy(), self.bias
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.bias)
         self._drag_new = getattr(self, "drag", False)  # a new smoother: M inserted again with its prior
         self.p_loc = np.asarray(pos, float)
         self.P_loc = np.diag(np.maximum(pos_sigma, 1e-3) ** 2)
-        self.P_own = self.P_loc.copy()
         self.p = self.p_loc.copy()
         self._v_pred = self.vel.copy()
         self._links_ready = False
@@ -307,35 +281,8 @@ class GraphEstimator(NodeEstimator):
                 # the drag state is constant: its timestamp keeps it in the window (a timestamp for
                 # a key the smoother does not hold yet is an error, e.g. an epoch without IMU data)
                 ts.insert((DRAG_KEY, inp.t))
-        if self.anchor_gate_p > 0 and self._has_anchor_ranges(inp):
-            # innovation gate: predict X(n) (IMU + the epoch's other own factors), test each anchor
-            # range against the predicted covariance, then add only the consistent ones
-            self.smoother.update(g, v, ts)
-            g2 = gtsam.NonlinearFactorGraph()
-            self._add_anchor_ranges(g2, X(n), inp, gate=True)
-            if g2.size():
-                self.smoother.update(g2, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
-                for i in range(g2.size()):
-                    g.add(g2.at(i))
-        else:
-            self._add_anchor_ranges(g, X(n), inp)
-            self.smoother.update(g, v, ts)
-        if self.own is not None:
-            po = self.pim.predict(gtsam.NavState(self.own_pose, self.own_vel), self.own_bias)
-            vo = gtsam.Values()
-            vo.insert(X(n), po.pose())
-            vo.insert(V(n), po.velocity())
-            vo.insert(B(n), self.own_bias)
-            if m0 is not None:
-                vo.insert(DRAG_KEY, m0)
-            self.own.update(g, vo, ts)
-            est = self.own.calculateEstimate()
-            self.own_pose = est.atPose3(X(n))
-            self.own_vel = np.asarray(est.atVector(V(n)), float)
-            self.own_bias = est.atConstantBias(B(n))
-            Ro = self.own_pose.rotation().matrix()
-            Po = Ro @ self.own.marginalCovariance(X(n))[3:, 3:] @ Ro.T
-            self.P_own = 0.5 * (Po + Po.T)
+        self._add_anchor_ranges(g, X(n), inp)
+        self.smoother.update(g, v, ts)
         self.n, self.t = n, inp.t
         self._read_estimate()
         cov6 = self.smoother.marginalCovariance(X(n))
@@ -401,8 +348,6 @@ class GraphEstimator(NodeEstimator):
         self.bias = est.atConstantBias(B(self.n))
 
     def _broadcast_cov(self) -> np.ndarray:
-        if self.own is not None:
-            return self.own_cov_scale * self.P_own
         return self.P_loc.copy()
 
     def _altitude_factor(self, key, height, sigma):
@@ -414,10 +359,7 @@ class GraphEstimator(NodeEstimator):
 
         return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, float(sigma)), [key], err)
 
-    def _has_anchor_ranges(self, inp: EpochInput) -> bool:
-        return bool(self.anchors) and len(inp.range_other) > 0 and bool(np.isin(inp.range_other, list(self.anchors)).any())
-
-    def _add_anchor_ranges(self, g, key, inp: EpochInput, gate: bool = False):
+    def _add_anchor_ranges(self, g, key, inp: EpochInput):
         if not self.anchors or len(inp.range_other) == 0:
             return
         m = np.isin(inp.range_other, list(self.anchors))
@@ -431,11 +373,6 @@ class GraphEstimator(NodeEstimator):
         levers = np.array([self.tags.get(int(t), np.zeros(3)) for t in inp.range_tag_self[m]])
         sig = np.where(inp.range_sigma[m] > 0, inp.range_sigma[m], self.uwb_sigma)
         z = inp.range_m[m]
-        if gate:
-            ok = self._anchor_gate(key, pts, levers, z, sig)
-            if not ok.any():
-                return
-            pts, levers, sig, z = pts[ok], levers[ok], sig[ok], z[ok]
         f = stacked_range_factor(key, pts, z, sig, levers)
         # anchors are known, not broadcast: a Huber kernel (k = 3 sigma, whitened) guards NLOS
         me = gtsam.noiseModel.mEstimator
@@ -463,32 +400,6 @@ class GraphEstimator(NodeEstimator):
         dt = np.diff(np.r_[np.asarray(inp.imu_t, float), float(inp.t)])
         self._rest_dv = self._rest_dv + ((f - self._rest_f0) * dt[:, None]).sum(axis=0)
         return bool(np.linalg.norm(self._rest_dv) < self.rest_max_speed)
-
-    def _anchor_gate(self, key, pts, levers, z, sig) -> np.ndarray:
-        """χ²₁ test of each anchor range's innovation against the predicted covariance of X(n)
-        (position block; S = uᵀPu + σ²). After ``anchor_gate_max_reject`` consecutive rejections
-        the next range is accepted whatever its innovation (the prediction is then suspect)."""
-        est = self.smoother.calculateEstimate()
-        P = est.atPose3(key)
-        Rm = P.rotation().matrix()
-        cov = self.smoother.marginalCovariance(key)
-        Pp = Rm @ cov[3:, 3:] @ Rm.T
-        d = P.translation() + levers @ Rm.T - pts
-        r = np.sqrt(np.einsum("ij,ij->i", d, d))
-        u = d / np.maximum(r, 1e-9)[:, None]
-        S = np.einsum("ni,ij,nj->n", u, Pp, u) + sig ** 2
-        nu = z - r
-        ok = nu * nu / S <= self._gate_thr
-        for i in range(len(ok)):
-            if ok[i]:
-                self._gate_rejects = 0
-            else:
-                self._gate_rejects += 1
-                if self._gate_rejects > self.anchor_gate_max_reject:
-                    ok[i] = True
-                    self._gate_rejects = 0
-        self.gate_log.append((self.t, int(len(ok)), int((~ok).sum())))
-        return ok
 
     def _own_ranges(self, inp: EpochInput):
         """Inter-UAV ranges this node took part in: per other UAV, the mean and the tag offsets."""
@@ -540,20 +451,11 @@ class GraphEstimator(NodeEstimator):
             res = c["pairs"].residuals(P)
             self.delta_h, cls, w = det.detect(res, self.delta_l, self.window, self.floor_factor,
                                                  self.kmeans_backend, self.ceil_factor, self.cap_h1)
-            if self.eq24_on == "residual":
-                w = w * w  # eq. 25 literally: l scales the residual, so the squared residual by l²
             self._final_res = res
             for i, o in zip(c["mine"], c["mine_other"]):
                 if o in weights:
                     weights[o] = float(w[i])
                     res_own[o] = (float(res[i]), int(cls[i]))
-            if self.sticky and r > 1:
-                # a link flagged in an earlier round of the epoch stays flagged: the residuals of
-                # later rounds are on positions the faulty link itself has already pulled
-                for o, (rv, c_) in self._res_own.items():
-                    if o in weights and o in res_own and self._weights.get(o, 1.0) < weights[o]:
-                        weights[o] = self._weights[o]
-                        res_own[o] = (res_own[o][0], min(c_, res_own[o][1]))
         self._weights, self._res_own, self._nb = weights, res_own, nb
         self._peers = peers
         self._P = P
@@ -567,8 +469,6 @@ class GraphEstimator(NodeEstimator):
             p = p + dp
             if np.linalg.norm(dp) < 1e-4:
                 break
-        if self.damping != 1.0 and r > 1:
-            p = p_prev + self.damping * (p - p_prev)
         self.p = p
         self._links_ready = True
         s = NodeState(self.uav, self.k, r, self.t, p.copy(), self._broadcast_cov(), self.vel.copy(),
@@ -720,11 +620,7 @@ class GraphEstimator(NodeEstimator):
             if np.trace(Lam) > 0 and self.commit_weight > 0:
                 Lam, gsum = Lam * self.commit_weight, gsum * self.commit_weight
                 Lr = Lam + 1e-8 * np.eye(3)
-                if self.commit_mean == "joint":
-                    # posterior mean of X(n) = the round solution p (linear fusion with P_loc)
-                    z = self.p + np.linalg.solve(Lr, self._info @ (self.p - self.p_loc))
-                else:
-                    z = self.p + np.linalg.solve(Lr, gsum)
+                z = self.p + np.linalg.solve(Lr, gsum)
                 Lr = 0.5 * (Lr + Lr.T)
                 g = gtsam.NonlinearFactorGraph()
                 g.add(gtsam.GPSFactor(X(self.n), z, gtsam.noiseModel.Gaussian.Information(Lr)))
