@@ -135,3 +135,39 @@ def test_effective_sigma_marginalises_line_of_sight():
     cov = np.diag([4.0, 100.0, 100.0])
     assert F.effective_range_sigma(0.1, u, cov) == pytest.approx(np.sqrt(0.01 + 4.0))
     assert F.effective_range_sigma(0.1, u, None) == pytest.approx(0.1)
+
+
+@pytest.mark.parametrize("layout", ["three_poses", "own_tags_and_anchor", "anchor_pair"])
+@pytest.mark.parametrize("seed", range(3))
+def test_tdoa_factor_jacobian_and_value(layout, seed):
+    """Passive range difference: listener, initiator, responder on poses (levers) or fixed points;
+    two ends on one key (a robot's two tags) add up in its Jacobian."""
+    rng = np.random.default_rng(40 + seed)
+    v = gtsam.Values()
+    poses = {k: _pose(rng) for k in (X(0), X(1), X(2))}
+    lev = rng.normal(0, 0.3, (3, 3))
+    fixed = rng.normal(0, 50, (3, 3))
+    ends = {"three_poses": [(X(0), lev[0]), (X(1), lev[1]), (X(2), lev[2])],
+            "own_tags_and_anchor": [(X(0), lev[0]), (None, fixed[1]), (X(0), lev[2])],
+            "anchor_pair": [(X(0), lev[0]), (None, fixed[1]), (None, fixed[2])]}[layout]
+    for k, _ in ends:
+        if k is not None and not v.exists(k):
+            v.insert(k, poses[k])
+    f = F.tdoa_factor(ends, 3.0, gtsam.noiseModel.Isotropic.Sigma(1, 0.2))
+    _check_jacobians(f, v, {k: True for k in f.keys()})
+    pts = [x if k is None else poses[k].translation() + poses[k].rotation().matrix() @ x for k, x in ends]
+    expected = np.linalg.norm(pts[2] - pts[0]) - np.linalg.norm(pts[1] - pts[0])
+    np.testing.assert_allclose(f.unwhitenedError(v), [expected - 3.0], atol=1e-10)
+
+
+def test_tdoa_h_matches_finite_differences():
+    rng = np.random.default_rng(6)
+    for _ in range(5):
+        p = rng.normal(0, 20, (3, 3))
+        h, *J = F.tdoa_h(*p)
+        for e in range(3):
+            for c in range(3):
+                d = np.zeros((3, 3))
+                d[e, c] = 1e-6
+                num = (F.tdoa_h(*(p + d))[0] - F.tdoa_h(*(p - d))[0]) / 2e-6
+                assert abs(J[e][c] - num) < 1e-7

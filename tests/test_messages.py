@@ -149,6 +149,33 @@ def test_input_frame_exact():
     _same_input(bare, M.decode_input(M.encode_input(bare, [2]))[0])
 
 
+def _with_tdoa(inp):
+    """A passive-listening epoch: tag 21 of UAV 2 heard 10 (UAV 1) ranging to anchor 3 (node 103)."""
+    inp.tdoa_t, inp.tdoa_tag = np.array([3.4, 3.9]), np.array([21, 20])
+    inp.tdoa_init, inp.tdoa_tag_init = np.array([1, 3]), np.array([10, 30])
+    inp.tdoa_resp, inp.tdoa_tag_resp = np.array([103, 1]), np.array([3, 11])
+    inp.tdoa_m, inp.tdoa_sigma = np.array([-1.25, 0.5e-300]), np.array([0.19, 0.2])
+    return inp
+
+
+def test_tdoa_input_round_trips_both_encodings():
+    inp = _with_tdoa(_input(np.random.default_rng(11)))
+    _same_input(inp, M.decode_input(M.encode_input(inp, [1, 2, 3]), uav=2)[0])
+    msgs = {t: M.decode(M.SENSOR_MSG[t], m.encode(), uav=2) for t, m in M.epoch_input_to_msgs(inp, [1, 2, 3]).items()}
+    assert "tdoa" in msgs["epoch"].parts
+    _same_input(inp, M.msgs_to_epoch_input(msgs))
+
+
+@pytest.mark.parametrize("field, value", [("tdoa_sigma", np.array([0.19, 0.0])), ("tdoa_init", np.array([-1, 3])),
+                                          ("tdoa_m", np.array([np.inf, 0.0]))])
+def test_tdoa_input_rejects_values(field, value):
+    inp = _with_tdoa(_input(np.random.default_rng(12)))
+    setattr(inp, field, value)
+    with pytest.raises(M.WireError) as e:
+        M.decode_input(M.encode_input(inp, [1, 2, 3]), uav=2)
+    assert e.value.reason == "invalid"
+
+
 @pytest.mark.parametrize("mutate, reason", [
     (lambda b: b"not json", "malformed"),
     (lambda b: b[:3] + bytes([M.SCHEMA_VERSION + 1]) + b[4:], "version"),

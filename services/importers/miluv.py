@@ -12,6 +12,9 @@ Reads one MILUV experiment folder (``ifo00N/*.csv`` plus ``config/``) with the c
 - IMU: ``imu_px4.csv`` (mavros ``data_raw``, already ROS body FLU), every sample kept (variable rate);
 - ranges: ``uwb_range.csv`` of all robots, deduplicated on (timestamp, unordered tag pair), sigma =
   the row's ``std``, labels from ``bias``/``std``;
+- tdoa: ``uwb_passive.csv`` of all robots (a third tag overhearing a two-way ranging transaction)
+  turned into range differences with the transaction's own timestamps (``_passive_rdiff``),
+  deduplicated on (listener, initiator, responder, transaction time), labels from mocap;
 - altitude: ``height.csv`` minus the per-robot bias, readings at the sensor floor dropped;
 - truth: mocap, resampled to a 10-sub-step grid of the epochs, velocities by central differences.
 
@@ -52,6 +55,13 @@ LEVEL_MAX_G_DEV = 0.3  # m/s^2
 # minus its VIB_SMOOTH_S moving average, while the rangefinder says airborne; density = per-sample
 # RMS std / sqrt(rate). Used when above the at-rest Allan value.
 VIB_SMOOTH_S = 0.2
+# Passive listening (uwb_passive.csv): timestamps in ns of the DW1000's 63.8976 GHz counter
+# (15.65 ps ticks). The listener's logged rx timestamps wrap every 2**32 ticks = 67.216 ms (seen in
+# the recording: ~15 % of the rows have rx2 - rx1 one wrap too long), so every interval is taken
+# modulo PASSIVE_WRAP_NS. Clock-rate ratio sanity bound: DW1000 crystals are +-20 ppm.
+SPEED_OF_LIGHT_M_PER_NS = 0.299792458
+PASSIVE_WRAP_NS = 2.0**32 / (128 * 499.2e6) * 1e9
+PASSIVE_MAX_SKEW = 1e-4
 
 _ROBOT_RE = re.compile(r"^ifo0*(\d+)$")
 
@@ -529,6 +539,10 @@ def convert(src: str | Path, epoch_dt: float = 0.1) -> tuple[Dataset, dict]:
         ok = np.isfinite(R[:, 8])
         summary["ranges"]["our_truth_minus_gt_range_m"] = {"max_abs": round(float(np.abs(d_now[ok] - R[ok, 8]).max()), 4)}
 
+    # -- passive listening -> tdoa ------------------------------------------------------------
+    tdoa_tab = _import_passive(src, robots, tag_owner, nodes, anchors, truth_fn, t_start, t_end, sigma_nominal,
+                               used_files, summary)
+
     # -- meta --------------------------------------------------------------------------------
     h = hashlib.sha256()
     for f in sorted(set(used_files)):
@@ -555,6 +569,8 @@ def convert(src: str | Path, epoch_dt: float = 0.1) -> tuple[Dataset, dict]:
         init=dict(INIT, **({"level_window_s": LEVEL_WINDOW_S} if level else {})),
     )
     tables = {"truth": truth_tab, "imu": imu_tab, "ranges": ranges_tab}
+    if tdoa_tab is not None:
+        tables["tdoa"] = tdoa_tab
     if alt_tab is not None:
         tables["altitude"] = alt_tab
         summary["altitude_rows"] = int(len(alt_tab["t"]))
@@ -571,20 +587,129 @@ def _sorted_table(name: str, t: np.ndarray, node: np.ndarray, data: np.ndarray) 
     return out
 
 
+def _tag_point(truth_fn, anchors, levers, node: int, tag: int, t: float) -> np.ndarray:
+    """True position of a tag at time t from mocap (linear position, slerped attitude) + lever arm."""
+    if node >= ANCHOR_NODE_OFFSET:
+        return np.asarray(anchors[node - ANCHOR_NODE_OFFSET], float)
+    tt, pos, q = truth_fn[node]
+    ti = np.array([t])
+    p = np.array([np.interp(ti, tt, pos[:, j])[0] for j in range(3)])
+    C = _rotmat_xyzw(_slerp(tt, q, ti))[0]
+    return p + C @ np.asarray(levers[node][tag])
+
+
 def _true_range(truth_fn, anchors, nodes, r, times) -> np.ndarray:
-    """True tag-to-tag distance from mocap (linear position, slerped attitude) + lever arms."""
+    """True tag-to-tag distance from mocap + lever arms."""
     levers = {n.id: n.tags for n in nodes}
     out = np.empty(len(times))
     for i in range(len(times)):
-        ends = []
-        for node, tag in ((int(r["a"][i]), int(r["tag_a"][i])), (int(r["b"][i]), int(r["tag_b"][i]))):
-            if node >= ANCHOR_NODE_OFFSET:
-                ends.append(np.asarray(anchors[node - ANCHOR_NODE_OFFSET]))
-                continue
-            t, pos, q = truth_fn[node]
-            ti = np.array([times[i]])
-            p = np.array([np.interp(ti, t, pos[:, j])[0] for j in range(3)])
-            C = _rotmat_xyzw(_slerp(t, q, ti))[0]
-            ends.append(p + C @ np.asarray(levers[node][tag]))
-        out[i] = float(np.linalg.norm(ends[0] - ends[1]))
+        pa = _tag_point(truth_fn, anchors, levers, int(r["a"][i]), int(r["tag_a"][i]), times[i])
+        pb = _tag_point(truth_fn, anchors, levers, int(r["b"][i]), int(r["tag_b"][i]), times[i])
+        out[i] = float(np.linalg.norm(pa - pb))
     return out
+
+
+def _passive_rdiff(c: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Range difference d(resp, listener) − d(init, listener) [m] of passive-listening rows, and
+    the listener/responder clock-rate ratio (for the sanity check).
+
+    MILUV's two-way ranging (``*_n`` = the overheard active transaction): the initiator I sends a
+    poll at tx1 (I's clock), the responder R receives it at rx1_n and sends two messages at tx2_n,
+    tx3_n (R's clock). The listener L receives the three at rx1, rx2, rx3 (L's clock). In R's clock,
+    rx2 − rx1 = (tx2_n − rx1_n) + ToF(I,R) + (d(R,L) − d(I,L))/c, with L's intervals converted to
+    R's clock by the ratio (tx3_n − tx2_n)/(rx3 − rx2) (two messages from R on the same path), and
+    c·ToF(I,R) = the transaction's calibrated range ``range_n``. Intervals modulo the counter wrap.
+    """
+    w = PASSIVE_WRAP_NS
+    d_l12 = np.mod(c["rx2"] - c["rx1"], w)
+    d_l23 = np.mod(c["rx3"] - c["rx2"], w)
+    d_r = np.mod(c["tx3_n"] - c["tx2_n"], w)
+    reply = np.mod(c["tx2_n"] - c["rx1_n"], w)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = d_r / d_l23
+        rdiff = SPEED_OF_LIGHT_M_PER_NS * (d_l12 * ratio - reply) - c["range_n"]
+    return rdiff, ratio
+
+
+def _import_passive(src: Path, robots, tag_owner: dict[int, int], nodes, anchors, truth_fn, t_start: float,
+                    t_end: float, sigma_nominal: float, used_files: list[Path], summary: dict):
+    """``uwb_passive.csv`` of every robot -> the ``tdoa`` table (None if no robot has the file).
+
+    A row is logged by several robots (identical values): deduplicated on (listener, initiator,
+    responder, transaction time). Dropped, and counted in the summary: rows outside the span, a
+    listener that is not a robot's tag or is one of the transaction's own tags, non-finite values,
+    a clock-rate ratio beyond 1 ± PASSIVE_MAX_SKEW, and range differences that break the triangle
+    inequality |d(R,L) − d(I,L)| <= d(I,R) by more than 3 σ. Time = the transaction's timestamp
+    (``timestamp_n``, the active range's, which the row overheard); σ = the row's ``std``.
+    """
+    cols = ["my_id", "from_id", "to_id", "rx1", "rx2", "rx3", "rx1_n", "tx2_n", "tx3_n", "range_n", "std", "timestamp_n"]
+    seen: dict[tuple[int, int, int, float], tuple[float, float, float, float]] = {}
+    dropped = {"outside_span": 0, "not_a_listener": 0, "invalid": 0, "clock_ratio": 0, "triangle": 0}
+    n_logged, n_dup, any_file = 0, 0, False
+    for name, _ in robots:
+        p = src / name / "uwb_passive.csv"
+        if not p.is_file():
+            continue
+        any_file = True
+        used_files.append(p)
+        c = read_csv(p, cols)
+        rdiff, ratio = _passive_rdiff(c)
+        for i in range(len(c["timestamp_n"])):
+            n_logged += 1
+            ids = (c["my_id"][i], c["from_id"][i], c["to_id"][i])
+            if not all(math.isfinite(x) and x == int(x) for x in ids):
+                raise DatasetError(f"{p}: row {i + 2}: my_id/from_id/to_id not integers {ids}")
+            lt, it, rt = (int(x) for x in ids)
+            for tg in (lt, it, rt):
+                if tg not in tag_owner:
+                    raise DatasetError(f"{p}: row {i + 2}: unknown tag/anchor id {tg} (tags.yaml/anchors.yaml)")
+            ts = float(c["timestamp_n"][i])
+            if not (math.isfinite(ts) and t_start < ts <= t_end):
+                dropped["outside_span"] += 1
+                continue
+            if tag_owner[lt] >= ANCHOR_NODE_OFFSET or lt in (it, rt):
+                dropped["not_a_listener"] += 1
+                continue
+            z, sd, rng = float(rdiff[i]), float(c["std"][i]), float(c["range_n"][i])
+            if not (math.isfinite(z) and math.isfinite(rng) and rng > 0):
+                dropped["invalid"] += 1
+                continue
+            if abs(float(ratio[i]) - 1.0) > PASSIVE_MAX_SKEW:
+                dropped["clock_ratio"] += 1
+                continue
+            sd = sd if math.isfinite(sd) and sd > 0 else sigma_nominal
+            if abs(z) > rng + 3 * sd:
+                dropped["triangle"] += 1
+                continue
+            key = (lt, it, rt, ts)
+            if key in seen:
+                n_dup += 1
+                if abs(seen[key][0] - z) > 1e-9:
+                    raise DatasetError(f"{p}: row {i + 2}: passive row {key} also logged by another robot with a different value")
+                continue
+            seen[key] = (z, sd, rng, float(ratio[i]))
+    if not any_file:
+        return None
+    levers = {n.id: n.tags for n in nodes}
+    rows = []
+    for (lt, it, rt, ts), (z, sd, _, _) in seen.items():
+        pl, pi, pr = (_tag_point(truth_fn, anchors, levers, tag_owner[x], x, ts) for x in (lt, it, rt))
+        err = z - (float(np.linalg.norm(pr - pl)) - float(np.linalg.norm(pi - pl)))
+        rows.append((ts, tag_owner[lt], lt, tag_owner[it], it, tag_owner[rt], rt, z, sd, err))
+    rows.sort()
+    T = np.array(rows, float).reshape(-1, 10)
+    faulty = np.abs(T[:, 9]) > 3 * T[:, 8]
+    ints = lambda j: T[:, j].astype(np.int64)  # noqa: E731
+    tab = {"t": T[:, 0], "node": ints(1), "tag": ints(2), "init": ints(3), "tag_init": ints(4), "resp": ints(5),
+           "tag_resp": ints(6), "rdiff": T[:, 7], "sigma": T[:, 8],
+           "fault_kind": np.where(faulty, int(FaultKind.NLOS_REAL), int(FaultKind.NONE)).astype(np.int64),
+           "fault_err": T[:, 9]}
+    e = T[:, 9]
+    summary["tdoa"] = {
+        "logged_rows": n_logged, "duplicates_removed": n_dup, "kept": int(len(T)), "dropped": dropped,
+        "with_anchor": int(((tab["init"] >= ANCHOR_NODE_OFFSET) | (tab["resp"] >= ANCHOR_NODE_OFFSET)).sum()),
+        "error_m": ({"median": round(float(np.median(e)), 4),
+                     "robust_sigma": round(float(1.4826 * np.median(np.abs(e - np.median(e)))), 4)} if len(e) else None),
+        "nlos_real_rows": int(faulty.sum()),
+    }
+    return tab

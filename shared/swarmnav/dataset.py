@@ -11,6 +11,8 @@ Simulated runs and converted real recordings use the same format, documented in
     ranges.parquet     t, a, b, tag_a, tag_b, range, sigma, fault_kind, fault_err
     rel.parquet        t, observer, target, azimuth, elevation, sigma   (rad, eq. 27 in ENU)
     altitude.parquet   t, node, height, sigma   (optional; ENU up of the body origin, m)
+    tdoa.parquet       t, node, tag, init, tag_init, resp, tag_resp, rdiff, sigma, fault_kind, fault_err
+                       (optional; passive-listening range differences, m)
 
 Conventions:
 
@@ -23,6 +25,11 @@ Conventions:
   pair receive the same value. ``fault_kind``: see :class:`FaultKind`; ``fault_err`` is the error
   the fault adds in metres (NaN when unknown). A link-epoch is *faulty* for scoring when
   ``|fault_err| > meta.fault_threshold_m`` (3 sigma of the ranging noise).
+- A tdoa row is one passive-listening measurement: tag ``tag`` on UAV ``node`` overheard the
+  two-way ranging transaction initiated by tag ``tag_init`` on node ``init`` and answered by tag
+  ``tag_resp`` on node ``resp`` (UAVs or anchors; the listener's own other tag allowed) and
+  measured ``rdiff`` = ‖resp tag − listener tag‖ − ‖init tag − listener tag‖ [m] at ``t``.
+  ``fault_kind``/``fault_err`` as for ranges (``fault_err`` = measured − true, NaN when unknown).
 - Relative angles follow eq. 27 with x = E, y = N, z = U, measured by ``observer`` of ``target``:
   azimuth = atan2(N_t - N_o, E_t - E_o) (from East, counter-clockwise, in (-pi, pi]),
   elevation = atan2(U_t - U_o, horizontal distance) (in [-pi/2, pi/2]).
@@ -50,9 +57,11 @@ TABLE_COLUMNS: dict[str, tuple[str, ...]] = {
     "ranges": ("t", "a", "b", "tag_a", "tag_b", "range", "sigma", "fault_kind", "fault_err"),
     "rel": ("t", "observer", "target", "azimuth", "elevation", "sigma"),
     "altitude": ("t", "node", "height", "sigma"),
+    "tdoa": ("t", "node", "tag", "init", "tag_init", "resp", "tag_resp", "rdiff", "sigma", "fault_kind", "fault_err"),
 }
-INT_COLUMNS = {"node", "a", "b", "tag_a", "tag_b", "fault_kind", "observer", "target"}
-OPTIONAL_TABLES = {"altitude", "rel", "gnss"}
+INT_COLUMNS = {"node", "a", "b", "tag_a", "tag_b", "fault_kind", "observer", "target", "tag", "init", "tag_init",
+               "resp", "tag_resp"}
+OPTIONAL_TABLES = {"altitude", "rel", "gnss", "tdoa"}
 
 
 class FaultKind(IntEnum):
@@ -253,8 +262,9 @@ class EpochInput:
     imu_t/gyro/accel: IMU samples with t_prev <= imu_t < t (zero-order hold to the next sample;
     the last one holds until t). gnss_*: the fix at t if any (ENU). ranges: rows this UAV takes
     part in, ``other`` = the other node id, with event time ``range_t`` inside (t_prev, t].
-    rel: this UAV's own azimuth/elevation observations. Labels are NOT included (estimators must
-    not see them); the central oracle gets them separately.
+    rel: this UAV's own azimuth/elevation observations. tdoa: the passive-listening rows this UAV
+    is the listener of (``tdoa_tag`` = its listening tag; see the ``tdoa`` table). Labels are NOT
+    included (estimators must not see them); the central oracle gets them separately.
     """
 
     uav: int
@@ -280,6 +290,14 @@ class EpochInput:
     rel_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
     altitude: float | None = None
     altitude_sigma: float | None = None
+    tdoa_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tdoa_tag: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # own listening tag
+    tdoa_init: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # initiator node id
+    tdoa_tag_init: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    tdoa_resp: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # responder node id
+    tdoa_tag_resp: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    tdoa_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # range difference resp − init, m
+    tdoa_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 class EpochSlicer:
@@ -314,6 +332,8 @@ class EpochSlicer:
         self._rels = np.searchsorted(self._rel["t"], self.edges, side="right")
         self._alt = ds.table("altitude")
         self._alts = np.searchsorted(self._alt["t"], self.edges, side="right")
+        self._td = ds.table("tdoa")
+        self._tds = np.searchsorted(self._td["t"], self.edges, side="right")
 
     def epoch(self, k: int, uav: int) -> EpochInput:
         t_prev, t = self.edges[k - 1], self.edges[k]
@@ -353,7 +373,20 @@ class EpochSlicer:
         sel = lo + np.flatnonzero(al["node"][lo:hi] == uav)
         if len(sel):
             inp.altitude, inp.altitude_sigma = float(al["height"][sel[-1]]), float(al["sigma"][sel[-1]])
+        td = self._td
+        lo, hi = self._tds[k - 1], self._tds[k]
+        sel = lo + np.flatnonzero(td["node"][lo:hi] == uav)
+        if len(sel):
+            inp.tdoa_t, inp.tdoa_tag = td["t"][sel], td["tag"][sel]
+            inp.tdoa_init, inp.tdoa_tag_init = td["init"][sel], td["tag_init"][sel]
+            inp.tdoa_resp, inp.tdoa_tag_resp = td["resp"][sel], td["tag_resp"][sel]
+            inp.tdoa_m, inp.tdoa_sigma = td["rdiff"][sel], td["sigma"][sel]
         return inp
+
+    def tdoa_labels(self, k: int) -> Table:
+        """tdoa rows of epoch k with their fault labels (for scoring and the central oracle only)."""
+        lo, hi = self._tds[k - 1], self._tds[k]
+        return {c: v[lo:hi] for c, v in self._td.items()}
 
     def range_labels(self, k: int) -> Table:
         """Range rows of epoch k with their fault labels (for scoring and the central oracle only)."""

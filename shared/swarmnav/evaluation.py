@@ -132,7 +132,7 @@ def run_algorithm(ds: Dataset, algo: str, seed: int, settings: dict,
             inputs = {u: slicer.epoch(k, u) for u in uavs}
             labels = slicer.range_labels(k)
             t0 = time.perf_counter()
-            out = est.step(inputs, labels)
+            out = est.step(inputs, labels, slicer.tdoa_labels(k))
             dt_ms = (time.perf_counter() - t0) * 1e3
             for j, u in enumerate(uavs):
                 e = out.get(u)

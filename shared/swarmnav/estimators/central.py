@@ -208,7 +208,8 @@ class CentralEstimator(SwarmEstimator):
             self.bias[u] = gtsam.imuBias.ConstantBias()
         self._pending = (g, vals, ts)
 
-    def step(self, inputs: dict[int, EpochInput], range_labels: dict[str, np.ndarray]) -> dict[int, NodeEstimate]:
+    def step(self, inputs: dict[int, EpochInput], range_labels: dict[str, np.ndarray],
+             tdoa_labels: dict[str, np.ndarray] | None = None) -> dict[int, NodeEstimate]:
         g, vals, ts = self._pending if self._pending is not None else (gtsam.NonlinearFactorGraph(), gtsam.Values(), {})
         self._pending = None
         k0 = self.k
@@ -246,6 +247,8 @@ class CentralEstimator(SwarmEstimator):
                     g.add(azel_block_factor(X(u, k), [X(int(inp.rel_target[j]), k) for j in sel],
                                             np.asarray(inp.rel_az)[sel], np.asarray(inp.rel_el)[sel], sg))
         self._add_ranges(g, range_labels, k, set(inputs))
+        if tdoa_labels is not None:
+            self._add_tdoa(g, tdoa_labels, k, set(inputs))
         self.smoother.update(g, vals, ts)
         est = self.smoother.calculateEstimate()
         self.k = k
@@ -307,3 +310,27 @@ class CentralEstimator(SwarmEstimator):
                 g.add(range_to_point_factor(X(a, k), self.anchors[b] + lb, z, noise, lever=la))
             elif b in live and a in self.anchors:
                 g.add(range_to_point_factor(X(b, k), self.anchors[a] + la, z, noise, lever=lb))
+
+    def _add_tdoa(self, g: gtsam.NonlinearFactorGraph, lab: dict[str, np.ndarray], k: int, live: set[int]) -> None:
+        """Passive-listening range differences of the epoch (every end live or an anchor), the
+        truly faulty ones removed like the ranges (oracle)."""
+        from .factors import tdoa_factor
+
+        thr = self.meta.fault_threshold_m
+        for i in range(len(lab.get("rdiff", []))):
+            if not keep_range(int(lab["fault_kind"][i]), float(lab["fault_err"][i]), thr):
+                self.dropped += 1
+                continue
+            ends = []
+            for nc, tc in (("node", "tag"), ("init", "tag_init"), ("resp", "tag_resp")):
+                n, tag = int(lab[nc][i]), int(lab[tc][i])
+                lever = self.tags.get(n, {}).get(tag, np.zeros(3))
+                if n in self.anchors:
+                    ends.append((None, self.anchors[n] + lever))
+                elif n in live:
+                    ends.append((X(n, k), lever))
+                else:
+                    break
+            else:
+                sig = float(lab["sigma"][i]) if lab["sigma"][i] > 0 else self.meta.uwb_sigma_m
+                g.add(tdoa_factor(ends, float(lab["rdiff"][i]), gtsam.noiseModel.Isotropic.Sigma(1, sig)))

@@ -16,7 +16,9 @@ Two layers, same maths:
   - :func:`range_to_point_factor` — range from a pose (with a body lever arm) to a point given
     with an uncertainty (a fixed anchor: covariance 0; a neighbour's broadcast: its covariance is
     folded into the noise along the line of sight, see :func:`effective_range_sigma`);
-  - :func:`stacked_range_factor` — many ranges to known/uncertain points in one Python callback.
+  - :func:`stacked_range_factor` — many ranges to known/uncertain points in one Python callback;
+  - :func:`tdoa_factor` — a passive-listening range difference (``tdoa_h``) between up to three
+    tags on poses or fixed points.
 
 Conventions (dataset.py): azimuth = atan2(N_t - N_o, E_t - E_o) from East, counter-clockwise;
 elevation = atan2(U_t - U_o, horizontal distance). Residuals are ``h(x) - z`` with the azimuth
@@ -41,6 +43,8 @@ __all__ = [
     "range_factor",
     "range_to_point_factor",
     "stacked_range_factor",
+    "tdoa_h",
+    "tdoa_factor",
 ]
 
 _EPS = 1e-9
@@ -150,6 +154,55 @@ def _lever_jac(R: np.ndarray, lever: np.ndarray) -> np.ndarray:
     t = lever
     tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
     return np.hstack([-R @ tx, R])
+
+
+def tdoa_h(p_listener: np.ndarray, p_init: np.ndarray, p_resp: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Passive-listening range difference ‖p_resp − p_l‖ − ‖p_init − p_l‖ (m) and its Jacobians
+    (each (3,)) w.r.t. the listener, initiator and responder ENU positions."""
+    dr = np.asarray(p_resp, float) - np.asarray(p_listener, float)
+    di = np.asarray(p_init, float) - np.asarray(p_listener, float)
+    rr, ri = float(np.sqrt(dr @ dr)), float(np.sqrt(di @ di))
+    ur, ui = dr / max(rr, _EPS), di / max(ri, _EPS)
+    return rr - ri, ui - ur, -ui, ur
+
+
+def tdoa_factor(ends: Sequence[tuple[int | None, np.ndarray]], measured: float,
+                noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+    """Range-difference factor (``tdoa_h``) for the tags of listener, initiator and responder.
+
+    ``ends`` = three (key, vector) pairs in that order: a Pose3 key and the tag's body lever arm,
+    or ``None`` and the tag's fixed ENU position (an anchor). Two ends may share a key (a robot's
+    two tags). Error = h − z; analytic Jacobians (checked numerically in tests/test_factors.py).
+    """
+    ends = [(None if k is None else int(k), np.asarray(x, float)) for k, x in ends]
+    if len(ends) != 3:
+        raise ValueError("tdoa_factor needs (listener, initiator, responder)")
+    keys = sorted({k for k, _ in ends if k is not None})
+    if not keys:
+        raise ValueError("tdoa_factor: every end is fixed")
+
+    def err(this: gtsam.CustomFactor, v: gtsam.Values, H: list[np.ndarray] | None):
+        pts, jac = [], []
+        for k, x in ends:
+            if k is None:
+                pts.append(x)
+                jac.append(None)
+            else:
+                P = v.atPose3(k)
+                R = P.rotation().matrix()
+                pts.append(P.translation() + R @ x)
+                jac.append(_lever_jac(R, x))
+        h, *g = tdoa_h(*pts)
+        if H is not None:
+            for j, kk in enumerate(keys):
+                J = np.zeros(6)
+                for (k, _), gi, D in zip(ends, g, jac):
+                    if k == kk:
+                        J += gi @ D
+                H[j] = J.reshape(1, 6)
+        return np.array([h - measured])
+
+    return gtsam.CustomFactor(noise, keys, err)
 
 
 def range_to_point_factor(key: int, point: np.ndarray, measured: float, noise: gtsam.noiseModel.Base,

@@ -12,6 +12,13 @@ taken at t_r inside the epoch is fused at the epoch time t with the anchor moved
 motion (``_still``; ``initial_rest_zupt``, default on). A redescending anchor kernel
 (``anchor_kernel`` cauchy/tukey/gm; default huber, k 3) is available and measured worse on MILUV.
 
+Passive-listening range differences (``EpochInput.tdoa_*``, the listener's rows; docs/miluv.md
+"Fifth pass"): a row whose other tags are the node's own or anchors is an own factor
+(``factors.tdoa_factor`` under the anchor kernel; ``ins`` uses only these); a row that involves a
+neighbour's tag is a cooperative link like a range (the neighbour's broadcast position and
+covariance, its lever arm ignored) with a Huber weight (``tdoa_huber_k``, whitened) in the rounds
+and in the commit. Off with ``use_tdoa = false``.
+
 Epoch k (driven by ``swarmnav.protocol``):
 
 ``begin_epoch``
@@ -70,7 +77,7 @@ from ..calibration import fallback_delta_l
 from ..dataset import DatasetMeta, EpochInput
 from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState, tuned_settings
 from . import detection as det
-from .factors import rotor_drag_factor, rotor_drag_prior, stacked_range_factor, wrap_angle
+from .factors import rotor_drag_factor, rotor_drag_prior, stacked_range_factor, tdoa_factor, tdoa_h, wrap_angle
 from .imu import mean_specific_force, preintegrate, preintegration_params
 
 __all__ = ["AtvfgEstimator", "FgEstimator", "InsEstimator", "GraphEstimator", "link_sigma"]
@@ -192,6 +199,9 @@ class GraphEstimator(NodeEstimator):
         # robust kernel of the known-anchor ranges (whitened threshold k)
         self.anchor_kernel = str(s.get("anchor_kernel", "huber"))
         self.anchor_kernel_k = float(s.get("anchor_kernel_k", 3.0))
+        # passive-listening range differences (own rows: anchor kernel; cooperative: Huber weight)
+        self.use_tdoa = bool(s.get("use_tdoa", True))
+        self.tdoa_huber_k = float(s.get("tdoa_huber_k", 3.0))
         imu = node.imu
         self.bias_sigmas = np.r_[[max(imu.accel_bias_sigma, 1e-4)] * 3, [max(imu.gyro_bias_sigma, 1e-6)] * 3]
         self._reset(init.t, init.pos, init.vel, init.quat, np.asarray(init.pos_sigma, float),
@@ -282,6 +292,7 @@ class GraphEstimator(NodeEstimator):
                 # a key the smoother does not hold yet is an error, e.g. an epoch without IMU data)
                 ts.insert((DRAG_KEY, inp.t))
         self._add_anchor_ranges(g, X(n), inp)
+        self._add_own_tdoa(g, X(n), inp)
         self.smoother.update(g, v, ts)
         self.n, self.t = n, inp.t
         self._read_estimate()
@@ -380,6 +391,38 @@ class GraphEstimator(NodeEstimator):
         huber = gtsam.noiseModel.Robust.Create(kern.Create(self.anchor_kernel_k),
                                                gtsam.noiseModel.Unit.Create(len(z)))
         g.add(gtsam.CustomFactor(huber, [key], _unwrap_error(f)))
+
+    def _tdoa_rows(self, inp: EpochInput) -> tuple[list[int], list[int]]:
+        """Indices of this epoch's tdoa rows: (own = every other tag is this node's or an anchor's,
+        cooperative = a neighbour UAV's tag is involved). Rows naming an unknown node are ignored."""
+        own, coop = [], []
+        if not self.use_tdoa or not len(inp.tdoa_m):
+            return own, coop
+        uavs = set(self.meta.uav_ids())
+        for i in range(len(inp.tdoa_m)):
+            others = (int(inp.tdoa_init[i]), int(inp.tdoa_resp[i]))
+            if not np.isfinite(inp.tdoa_m[i]) or not all(o == self.uav or o in self.anchors or o in uavs for o in others):
+                continue
+            (own if all(o == self.uav or o in self.anchors for o in others) else coop).append(i)
+        return own, coop
+
+    def _tdoa_end(self, node: int, tag: int):
+        """(key, lever) of an own tag or (None, position) of an anchor's, for factors.tdoa_factor."""
+        if node == self.uav:
+            return X(self.n), self.tags.get(tag, np.zeros(3))
+        return None, self.anchors[node] + np.asarray(self.meta.node(node).tags.get(tag, (0.0, 0.0, 0.0)), float)
+
+    def _add_own_tdoa(self, g, key, inp: EpochInput):
+        own, _ = self._tdoa_rows(inp)
+        me = gtsam.noiseModel.mEstimator
+        kern = {"huber": me.Huber, "cauchy": me.Cauchy, "tukey": me.Tukey, "gm": me.GemanMcClure}[self.anchor_kernel]
+        for i in own:
+            ends = [(key, self.tags.get(int(inp.tdoa_tag[i]), np.zeros(3))),
+                    self._tdoa_end(int(inp.tdoa_init[i]), int(inp.tdoa_tag_init[i])),
+                    self._tdoa_end(int(inp.tdoa_resp[i]), int(inp.tdoa_tag_resp[i]))]
+            sig = float(inp.tdoa_sigma[i]) if inp.tdoa_sigma[i] > 0 else self.uwb_sigma
+            noise = gtsam.noiseModel.Robust.Create(kern.Create(self.anchor_kernel_k), gtsam.noiseModel.Isotropic.Sigma(1, sig))
+            g.add(tdoa_factor(ends, float(inp.tdoa_m[i]), noise))
 
     def _still(self, inp: EpochInput) -> bool:
         """IMU-only rest test: within the epoch, gyro-norm and specific-force-norm spreads small,
@@ -526,6 +569,27 @@ class GraphEstimator(NodeEstimator):
                 c["azel_node"] = np.array([idx[o] for o in tg], int)
                 c["azel_sig2"] = np.array(sg, float) ** 2
                 c["azel_z"] = np.array(z, float).reshape(-1, 2)
+        if self.use_tdoa:
+            # cooperative tdoa rows whose neighbours are all live: per end ("self", world lever),
+            # ("peer", node index) or ("fixed", ENU point); listener first, then initiator, responder
+            rows_t = []
+            for i in self._tdoa_rows(inp)[1]:
+                ends = []
+                for nd, tg in ((self.uav, int(inp.tdoa_tag[i])), (int(inp.tdoa_init[i]), int(inp.tdoa_tag_init[i])),
+                               (int(inp.tdoa_resp[i]), int(inp.tdoa_tag_resp[i]))):
+                    if nd == self.uav:
+                        ends.append(("self", Rm @ self.tags.get(tg, np.zeros(3))))
+                    elif nd in self.anchors:
+                        ends.append(("fixed", self._tdoa_end(nd, tg)[1]))
+                    elif nd in peers:
+                        ends.append(("peer", idx[nd]))
+                    else:
+                        break
+                else:
+                    sg = float(inp.tdoa_sigma[i]) if inp.tdoa_sigma[i] > 0 else self.uwb_sigma
+                    rows_t.append((ends, float(inp.tdoa_m[i]), sg * sg))
+            if rows_t:
+                c["tdoa"] = rows_t
         self._cache = c
         return c
 
@@ -558,6 +622,11 @@ class GraphEstimator(NodeEstimator):
                 n = c["azel_node"][:na][keep]
                 L["azel"] = (P[n], C[n] * f[keep][:, None, None], w[keep], c["azel_sig2"][:na][keep],
                              c["azel_z"][:na][keep])
+        if "tdoa" in c:
+            nodes = c["nodes"]
+            L["tdoa"] = [([(kind, P[x], C[x] * (infl if infl is not None else self._infl(nodes[x])))
+                           if kind == "peer" else (kind, x, None) for kind, x in ends], z, sig2)
+                         for ends, z, sig2 in c["tdoa"]]
         return L
 
     def _infl(self, o: int) -> float:
@@ -606,6 +675,18 @@ class GraphEstimator(NodeEstimator):
             CiJ = np.einsum("mjk,mkl->mjl", Ci, Jt)
             H += np.einsum("mji,mjl->il", Jt, CiJ)
             gv -= np.einsum("mji,mj->i", CiJ, res)
+        for ends, z, sig2 in L.get("tdoa", ()):
+            # own position p: the listener's tag (and maybe another own tag); neighbours' broadcast
+            # covariance folded into the variance along their gradient; Huber weight on the
+            # whitened residual
+            pts = [p + x if kind == "self" else x for kind, x, _ in ends]
+            h, *grads = tdoa_h(*pts)
+            j = sum(gi for (kind, _, _), gi in zip(ends, grads) if kind == "self")
+            var = sig2 + sum(gi @ Ce @ gi for (kind, _, Ce), gi in zip(ends, grads) if kind == "peer")
+            r = z - h
+            w = min(1.0, self.tdoa_huber_k * np.sqrt(var) / max(abs(r), 1e-12))
+            H += (w / var) * np.outer(j, j)
+            gv += (w * r / var) * j
         return H, gv
 
     # -- end ---------------------------------------------------------------------------------

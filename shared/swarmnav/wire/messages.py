@@ -13,7 +13,7 @@ This module is pure (no zenoh); converters map messages to/from the core's datac
 On the wire since schema version 2 the two bulky kinds are binary frames (end of this module):
 the sensor input of a UAV's epoch (one ``input`` frame: a pydantic-validated JSON header + float64
 /int64 arrays checked with numpy) and the peer state of a round (a fixed struct + float64 array).
-The per-part JSON models (ImuMsg, GnssMsg, UwbMsg, RelMsg, EpochMsg) and StateMsg remain for
+The per-part JSON models (ImuMsg, GnssMsg, UwbMsg, RelMsg, TdoaMsg, EpochMsg) and StateMsg remain for
 tests and for the state queryable's JSON history replies.
 """
 
@@ -31,7 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from ..dataset import EpochInput
 from ..estimators.base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeState
 
-SCHEMA_VERSION = 3  # 2: binary input/state frames (below); 3: states carry az/el bearings
+SCHEMA_VERSION = 4  # 2: binary input/state frames (below); 3: states carry az/el bearings; 4: tdoa inputs
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False)]
@@ -128,12 +128,30 @@ class RelMsg(UavMsg):
         return self
 
 
+class TdoaMsg(UavMsg):
+    """Passive-listening range differences this UAV heard (dataset ``tdoa`` table, listener = uav)."""
+
+    tdoa_t: list[Finite]
+    tag: list[Annotated[int, Field(ge=0)]]
+    init: list[Annotated[int, Field(ge=0)]]
+    tag_init: list[Annotated[int, Field(ge=0)]]
+    resp: list[Annotated[int, Field(ge=0)]]
+    tag_resp: list[Annotated[int, Field(ge=0)]]
+    rdiff: list[Finite]
+    sigma: list[Pos]
+
+    @model_validator(mode="after")
+    def _shape(self):
+        _same_len(self, "tdoa_t", "tag", "init", "tag_init", "resp", "tag_resp", "rdiff", "sigma")
+        return self
+
+
 class EpochMsg(UavMsg):
     """Closes epoch k's inputs for one UAV: which parts were sent, who takes part in the epoch."""
 
     t: Finite
     t_prev: Finite
-    parts: list[Literal["imu", "gnss", "uwb", "rel"]]
+    parts: list[Literal["imu", "gnss", "uwb", "rel", "tdoa"]]
     participants: list[UavId]
     altitude: Finite | None = None
     altitude_sigma: Pos | None = None
@@ -361,10 +379,15 @@ def epoch_input_to_msgs(inp: EpochInput, participants: list[int]) -> dict[str, U
         "rel": RelMsg(uav=u, k=k, target=[int(x) for x in inp.rel_target], az=_f(inp.rel_az), el=_f(inp.rel_el),
                       sigma=_f(inp.rel_sigma)),
     }
+    if len(inp.tdoa_m):
+        ints = lambda x: [int(v) for v in x]  # noqa: E731
+        out["tdoa"] = TdoaMsg(uav=u, k=k, tdoa_t=_f(inp.tdoa_t), tag=ints(inp.tdoa_tag), init=ints(inp.tdoa_init),
+                              tag_init=ints(inp.tdoa_tag_init), resp=ints(inp.tdoa_resp), tag_resp=ints(inp.tdoa_tag_resp),
+                              rdiff=_f(inp.tdoa_m), sigma=_f(inp.tdoa_sigma))
     if inp.gnss_pos is not None:
         out["gnss"] = GnssMsg(uav=u, k=k, pos=_f(inp.gnss_pos), vel=_f(inp.gnss_vel), pos_sigma=_f(inp.gnss_pos_sigma),
                               vel_sigma=float(inp.gnss_vel_sigma))
-    out["epoch"] = EpochMsg(uav=u, k=k, t=inp.t, t_prev=inp.t_prev, parts=[p for p in ("imu", "gnss", "uwb", "rel") if p in out],
+    out["epoch"] = EpochMsg(uav=u, k=k, t=inp.t, t_prev=inp.t_prev, parts=[p for p in ("imu", "gnss", "uwb", "rel", "tdoa") if p in out],
                             participants=sorted(participants), altitude=inp.altitude, altitude_sigma=inp.altitude_sigma)
     return out
 
@@ -388,10 +411,15 @@ def msgs_to_epoch_input(parts: dict[str, UavMsg]) -> EpochInput:
     r = parts.get("rel")
     if r is not None and len(r.target):
         inp.rel_target, inp.rel_az, inp.rel_el, inp.rel_sigma = i(r.target), a(r.az), a(r.el), a(r.sigma)
+    d = parts.get("tdoa")
+    if d is not None and len(d.tdoa_t):
+        inp.tdoa_t, inp.tdoa_tag, inp.tdoa_init, inp.tdoa_tag_init = a(d.tdoa_t), i(d.tag), i(d.init), i(d.tag_init)
+        inp.tdoa_resp, inp.tdoa_tag_resp, inp.tdoa_m, inp.tdoa_sigma = i(d.resp), i(d.tag_resp), a(d.rdiff), a(d.sigma)
     return inp
 
 
-SENSOR_MSG: dict[str, type[UavMsg]] = {"imu": ImuMsg, "gnss": GnssMsg, "uwb": UwbMsg, "rel": RelMsg, "epoch": EpochMsg}
+SENSOR_MSG: dict[str, type[UavMsg]] = {"imu": ImuMsg, "gnss": GnssMsg, "uwb": UwbMsg, "rel": RelMsg, "tdoa": TdoaMsg,
+                                        "epoch": EpochMsg}
 
 
 # -- binary frames for the bulky per-epoch traffic ---------------------------------------------
@@ -490,13 +518,16 @@ class InputHeader(UavMsg):
     n_imu: int = Field(ge=0)
     n_range: int = Field(ge=0)
     n_rel: int = Field(ge=0)
+    n_tdoa: int = Field(0, ge=0)
 
 
-# (name, columns) of the float64 and int64 blocks; lengths: n_imu, n_range or n_rel rows
+# (name, columns) of the float64 and int64 blocks; lengths: n_imu, n_range, n_rel or n_tdoa rows
 _INPUT_F = (("imu_t", "n_imu", 1), ("gyro", "n_imu", 3), ("accel", "n_imu", 3), ("range_t", "n_range", 1),
             ("range_m", "n_range", 1), ("range_sigma", "n_range", 1), ("rel_az", "n_rel", 1), ("rel_el", "n_rel", 1),
-            ("rel_sigma", "n_rel", 1))
-_INPUT_I = (("range_other", "n_range"), ("range_tag_self", "n_range"), ("range_tag_other", "n_range"), ("rel_target", "n_rel"))
+            ("rel_sigma", "n_rel", 1), ("tdoa_t", "n_tdoa", 1), ("tdoa_m", "n_tdoa", 1), ("tdoa_sigma", "n_tdoa", 1))
+_INPUT_I = (("range_other", "n_range"), ("range_tag_self", "n_range"), ("range_tag_other", "n_range"), ("rel_target", "n_rel"),
+            ("tdoa_tag", "n_tdoa"), ("tdoa_init", "n_tdoa"), ("tdoa_tag_init", "n_tdoa"), ("tdoa_resp", "n_tdoa"),
+            ("tdoa_tag_resp", "n_tdoa"))
 
 
 def encode_input(inp: EpochInput, participants: list[int]) -> bytes:
@@ -505,7 +536,7 @@ def encode_input(inp: EpochInput, participants: list[int]) -> bytes:
         g = GnssPart(pos=_f(inp.gnss_pos), vel=_f(inp.gnss_vel), pos_sigma=_f(inp.gnss_pos_sigma), vel_sigma=float(inp.gnss_vel_sigma))
     h = InputHeader(uav=inp.uav, k=inp.k, t=inp.t, t_prev=inp.t_prev, participants=sorted(int(p) for p in participants),
                     altitude=inp.altitude, altitude_sigma=inp.altitude_sigma, gnss=g, n_imu=len(inp.imu_t),
-                    n_range=len(inp.range_t), n_rel=len(inp.rel_target)).encode()
+                    n_range=len(inp.range_t), n_rel=len(inp.rel_target), n_tdoa=len(inp.tdoa_m)).encode()
     body = [np.ascontiguousarray(getattr(inp, name), "<f8").tobytes() for name, _, _ in _INPUT_F]
     body += [np.ascontiguousarray(getattr(inp, name), "<i8").tobytes() for name, _ in _INPUT_I]
     return _INPUT_HDR.pack(_INPUT_MAGIC, SCHEMA_VERSION, len(h)) + h + b"".join(body)
@@ -517,7 +548,7 @@ def decode_input(payload: bytes, *, uav: int | None = None, min_k: int | None = 
     _, _, hl = _INPUT_HDR.unpack_from(payload)
     o = _INPUT_HDR.size + hl
     h: InputHeader = decode(InputHeader, bytes(payload[_INPUT_HDR.size:o]), uav=uav, min_k=min_k)
-    n = {"n_imu": h.n_imu, "n_range": h.n_range, "n_rel": h.n_rel}
+    n = {"n_imu": h.n_imu, "n_range": h.n_range, "n_rel": h.n_rel, "n_tdoa": h.n_tdoa}
     nf = sum(n[c] * w for _, c, w in _INPUT_F)
     ni = sum(n[c] for _, c in _INPUT_I)
     if len(payload) != o + 8 * (nf + ni):
@@ -541,6 +572,9 @@ def decode_input(payload: bytes, *, uav: int | None = None, min_k: int | None = 
         raise WireError("invalid", "negative range, sigma or id")
     if h.n_rel and (a["rel_sigma"].min() <= 0 or a["rel_target"].min() < 1):
         raise WireError("invalid", "non-positive sigma or bad target id")
+    if h.n_tdoa and (a["tdoa_sigma"].min() <= 0 or min(a[c].min() for c in ("tdoa_tag", "tdoa_init", "tdoa_tag_init",
+                                                                             "tdoa_resp", "tdoa_tag_resp")) < 0):
+        raise WireError("invalid", "non-positive tdoa sigma or negative id")
     if (a["range_other"] == h.uav).any() or (a["rel_target"] == h.uav).any():
         raise WireError("invalid", "a UAV cannot range to or observe itself")
     inp = EpochInput(uav=h.uav, k=h.k, t=h.t, t_prev=h.t_prev, imu_t=a["imu_t"], gyro=a["gyro"], accel=a["accel"],
@@ -555,4 +589,7 @@ def decode_input(payload: bytes, *, uav: int | None = None, min_k: int | None = 
         inp.range_m, inp.range_sigma = a["range_m"], a["range_sigma"]
     if h.n_rel:
         inp.rel_target, inp.rel_az, inp.rel_el, inp.rel_sigma = a["rel_target"], a["rel_az"], a["rel_el"], a["rel_sigma"]
+    if h.n_tdoa:
+        for name in ("tdoa_t", "tdoa_m", "tdoa_sigma", "tdoa_tag", "tdoa_init", "tdoa_tag_init", "tdoa_resp", "tdoa_tag_resp"):
+            setattr(inp, name, a[name])
     return inp, list(h.participants)
