@@ -151,7 +151,7 @@ def test_input_frame_exact():
 
 def _with_tdoa(inp):
     """A passive-listening epoch: tag 21 of UAV 2 heard 10 (UAV 1) ranging to anchor 3 (node 103)."""
-    inp.tdoa_t, inp.tdoa_tag = np.array([3.4, 3.9]), np.array([21, 20])
+    inp.tdoa_t, inp.tdoa_listener, inp.tdoa_tag = np.array([3.4, 3.9]), np.array([2, 2]), np.array([21, 20])
     inp.tdoa_init, inp.tdoa_tag_init = np.array([1, 3]), np.array([10, 30])
     inp.tdoa_resp, inp.tdoa_tag_resp = np.array([103, 1]), np.array([3, 11])
     inp.tdoa_m, inp.tdoa_sigma = np.array([-1.25, 0.5e-300]), np.array([0.19, 0.2])
@@ -167,6 +167,7 @@ def test_tdoa_input_round_trips_both_encodings():
 
 
 @pytest.mark.parametrize("field, value", [("tdoa_sigma", np.array([0.19, 0.0])), ("tdoa_init", np.array([-1, 3])),
+                                          ("tdoa_listener", np.array([0, 2])),
                                           ("tdoa_m", np.array([np.inf, 0.0]))])
 def test_tdoa_input_rejects_values(field, value):
     inp = _with_tdoa(_input(np.random.default_rng(12)))

@@ -182,6 +182,54 @@ def test_one_range_by_hand(converted):
     assert ours == pytest.approx(by_hand, abs=0.01)
 
 
+def test_passive_range_difference_by_hand(converted):
+    """One passive-listening row by hand: tag 21 (ifo002) overheard the transaction of the range
+    above (initiator 30 on ifo003, responder 11 on ifo001, t = 2.835312604904175 s).
+
+    rdiff = c·[(rx2 − rx1)·(tx3_n − tx2_n)/(rx3 − rx2) − (tx2_n − rx1_n)] − range_n, timestamps in
+    ns (the listener's rx stamps convert to the responder's clock by the ratio of the two responder
+    messages' intervals). True value from the range row's mocap pose strings + tags.yaml levers.
+    """
+    c = 0.299792458
+    rx1, rx2, rx3 = 2255702569.271391, 2256007516.6651454, 2257546231.0565853
+    rx1n, tx2n, tx3n, range_n = 303414837.0391433, 303719784.5456783, 305258502.49439627, 2.548996385022064
+    by_hand = c * ((rx2 - rx1) * (tx3n - tx2n) / (rx3 - rx2) - (tx2n - rx1n)) - range_n
+    p1, q1 = np.array([-0.05851259, 0.05194755, 0.12971022]), (9.99898555e-01, 1.40104941e-02, 2.52193712e-03, 4.56941221e-04)
+    p2, q2 = np.array([0.02159937, 2.25925379, 0.11046071]), (0.9999907, -0.00347175, 0.00225827, 0.00119651)
+    p3, q3 = np.array([0.00990028, -2.03674879, 0.14020044]), (9.99955640e-01, 7.63877e-03, -5.05982e-03, -2.18388e-03)
+    tag21 = p2 + _quat_to_matrix_wxyz(*q2) @ np.array([-0.15467, 0.16972, -0.01680])
+    tag30 = p3 + _quat_to_matrix_wxyz(*q3) @ np.array([0.16685, -0.18113, -0.05576])
+    tag11 = p1 + _quat_to_matrix_wxyz(*q1) @ np.array([-0.17542, 0.15712, -0.05307])
+    truth = float(np.linalg.norm(tag11 - tag21) - np.linalg.norm(tag30 - tag21))
+    assert abs(by_hand - truth) < 0.3  # a good measurement: within ~1.5 sigma (std 0.189 m)
+
+    ds, summ = converted
+    d = ds.table("tdoa")
+    i = np.flatnonzero(np.isclose(d["t"], 2.835312604904175) & (d["tag"] == 21))
+    assert len(i) == 1
+    i = int(i[0])
+    assert (d["node"][i], d["init"][i], d["tag_init"][i], d["resp"][i], d["tag_resp"][i]) == (2, 3, 30, 1, 11)
+    assert d["rdiff"][i] == pytest.approx(by_hand, abs=1e-9)
+    assert d["sigma"][i] == pytest.approx(0.1887484319162718)
+    assert d["fault_err"][i] == pytest.approx(by_hand - truth, abs=0.01)  # our truth: interpolated mocap
+    # counts (docs/miluv.md "Fifth pass"): 980 logged rows in the three files, 249 second copies,
+    # 5 before t_start, 37 breaking the triangle inequality by > 3 sigma
+    s = summ["tdoa"]
+    assert (s["logged_rows"], s["duplicates_removed"], s["kept"]) == (980, 249, 689)
+    assert s["dropped"] == {"outside_span": 5, "not_a_listener": 0, "invalid": 0, "clock_ratio": 0, "triangle": 37}
+    # the counter wrap (2**32 ticks = 67.2 ms) is undone: ~15 % of the rows have rx2 - rx1 one wrap
+    # long; without it they would be ~2e7 m off and dropped. Kept rows are good to ~0.17 m (robust)
+    e = d["fault_err"]
+    assert abs(np.median(e)) < 0.1 and 1.4826 * np.median(np.abs(e - np.median(e))) < 0.2
+    assert np.all(np.diff(d["t"]) >= 0)
+    # every row reaches listener, initiator and responder (as both ends of a range get it)
+    sl = EpochSlicer(ds)
+    k = int(np.ceil((2.835312604904175 - ds.meta.t_start) / ds.meta.epoch_dt_s - 1e-9))
+    for u in (1, 2, 3):
+        inp = sl.epoch(k, u)
+        assert np.any(np.isclose(inp.tdoa_m, by_hand, atol=1e-9)), u
+
+
 def test_write_read_deterministic(converted, tmp_path):
     ds, _ = converted
     ds.write(tmp_path / "a")

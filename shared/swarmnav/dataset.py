@@ -263,7 +263,8 @@ class EpochInput:
     the last one holds until t). gnss_*: the fix at t if any (ENU). ranges: rows this UAV takes
     part in, ``other`` = the other node id, with event time ``range_t`` inside (t_prev, t].
     rel: this UAV's own azimuth/elevation observations. tdoa: the passive-listening rows this UAV
-    is the listener of (``tdoa_tag`` = its listening tag; see the ``tdoa`` table). Labels are NOT
+    takes part in as listener, initiator or responder (like a range, which both ends receive; see
+    the ``tdoa`` table). Labels are NOT
     included (estimators must not see them); the central oracle gets them separately.
     """
 
@@ -291,7 +292,8 @@ class EpochInput:
     altitude: float | None = None
     altitude_sigma: float | None = None
     tdoa_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    tdoa_tag: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # own listening tag
+    tdoa_listener: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # listener node id
+    tdoa_tag: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # the listener's tag
     tdoa_init: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # initiator node id
     tdoa_tag_init: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     tdoa_resp: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # responder node id
@@ -375,9 +377,9 @@ class EpochSlicer:
             inp.altitude, inp.altitude_sigma = float(al["height"][sel[-1]]), float(al["sigma"][sel[-1]])
         td = self._td
         lo, hi = self._tds[k - 1], self._tds[k]
-        sel = lo + np.flatnonzero(td["node"][lo:hi] == uav)
+        sel = lo + np.flatnonzero((td["node"][lo:hi] == uav) | (td["init"][lo:hi] == uav) | (td["resp"][lo:hi] == uav))
         if len(sel):
-            inp.tdoa_t, inp.tdoa_tag = td["t"][sel], td["tag"][sel]
+            inp.tdoa_t, inp.tdoa_listener, inp.tdoa_tag = td["t"][sel], td["node"][sel], td["tag"][sel]
             inp.tdoa_init, inp.tdoa_tag_init = td["init"][sel], td["tag_init"][sel]
             inp.tdoa_resp, inp.tdoa_tag_resp = td["resp"][sel], td["tag_resp"][sel]
             inp.tdoa_m, inp.tdoa_sigma = td["rdiff"][sel], td["sigma"][sel]

@@ -12,12 +12,13 @@ taken at t_r inside the epoch is fused at the epoch time t with the anchor moved
 motion (``_still``; ``initial_rest_zupt``, default on). A redescending anchor kernel
 (``anchor_kernel`` cauchy/tukey/gm; default huber, k 3) is available and measured worse on MILUV.
 
-Passive-listening range differences (``EpochInput.tdoa_*``, the listener's rows; docs/miluv.md
-"Fifth pass"): a row whose other tags are the node's own or anchors is an own factor
-(``factors.tdoa_factor`` under the anchor kernel; ``ins`` uses only these); a row that involves a
-neighbour's tag is a cooperative link like a range (the neighbour's broadcast position and
-covariance, its lever arm ignored) with a Huber weight (``tdoa_huber_k``, whitened) in the rounds
-and in the commit. Off with ``use_tdoa = false``.
+Passive-listening range differences (``EpochInput.tdoa_*``: the rows this node is listener,
+initiator or responder of, as both ends of a range receive it; docs/miluv.md "Fifth pass"): a
+row whose tags are all the node's own or anchors' is an own factor (``factors.tdoa_factor`` under
+the anchor kernel; ``ins`` uses only these); a row that involves a neighbour's tag is a
+cooperative link like a range (the neighbour's broadcast position and covariance, its lever arm
+ignored) with a Huber weight (``tdoa_huber_k``, whitened) in the rounds and in the commit. Off
+with ``use_tdoa = false``.
 
 Epoch k (driven by ``swarmnav.protocol``):
 
@@ -393,18 +394,24 @@ class GraphEstimator(NodeEstimator):
         g.add(gtsam.CustomFactor(huber, [key], _unwrap_error(f)))
 
     def _tdoa_rows(self, inp: EpochInput) -> tuple[list[int], list[int]]:
-        """Indices of this epoch's tdoa rows: (own = every other tag is this node's or an anchor's,
+        """Indices of this epoch's tdoa rows: (own = every tag is this node's or an anchor's,
         cooperative = a neighbour UAV's tag is involved). Rows naming an unknown node are ignored."""
         own, coop = [], []
         if not self.use_tdoa or not len(inp.tdoa_m):
             return own, coop
         uavs = set(self.meta.uav_ids())
         for i in range(len(inp.tdoa_m)):
-            others = (int(inp.tdoa_init[i]), int(inp.tdoa_resp[i]))
-            if not np.isfinite(inp.tdoa_m[i]) or not all(o == self.uav or o in self.anchors or o in uavs for o in others):
+            ends = (int(inp.tdoa_listener[i]), int(inp.tdoa_init[i]), int(inp.tdoa_resp[i]))
+            if (not np.isfinite(inp.tdoa_m[i]) or self.uav not in ends
+                    or not all(o in self.anchors or o in uavs for o in ends)):
                 continue
-            (own if all(o == self.uav or o in self.anchors for o in others) else coop).append(i)
+            (own if all(o == self.uav or o in self.anchors for o in ends) else coop).append(i)
         return own, coop
+
+    def _tdoa_ends(self, inp: EpochInput, i: int) -> tuple[tuple[int, int], ...]:
+        """(node, tag) of listener, initiator, responder of tdoa row i."""
+        return ((int(inp.tdoa_listener[i]), int(inp.tdoa_tag[i])), (int(inp.tdoa_init[i]), int(inp.tdoa_tag_init[i])),
+                (int(inp.tdoa_resp[i]), int(inp.tdoa_tag_resp[i])))
 
     def _tdoa_end(self, node: int, tag: int):
         """(key, lever) of an own tag or (None, position) of an anchor's, for factors.tdoa_factor."""
@@ -417,9 +424,7 @@ class GraphEstimator(NodeEstimator):
         me = gtsam.noiseModel.mEstimator
         kern = {"huber": me.Huber, "cauchy": me.Cauchy, "tukey": me.Tukey, "gm": me.GemanMcClure}[self.anchor_kernel]
         for i in own:
-            ends = [(key, self.tags.get(int(inp.tdoa_tag[i]), np.zeros(3))),
-                    self._tdoa_end(int(inp.tdoa_init[i]), int(inp.tdoa_tag_init[i])),
-                    self._tdoa_end(int(inp.tdoa_resp[i]), int(inp.tdoa_tag_resp[i]))]
+            ends = [self._tdoa_end(nd, tg) for nd, tg in self._tdoa_ends(inp, i)]
             sig = float(inp.tdoa_sigma[i]) if inp.tdoa_sigma[i] > 0 else self.uwb_sigma
             noise = gtsam.noiseModel.Robust.Create(kern.Create(self.anchor_kernel_k), gtsam.noiseModel.Isotropic.Sigma(1, sig))
             g.add(tdoa_factor(ends, float(inp.tdoa_m[i]), noise))
@@ -575,8 +580,7 @@ class GraphEstimator(NodeEstimator):
             rows_t = []
             for i in self._tdoa_rows(inp)[1]:
                 ends = []
-                for nd, tg in ((self.uav, int(inp.tdoa_tag[i])), (int(inp.tdoa_init[i]), int(inp.tdoa_tag_init[i])),
-                               (int(inp.tdoa_resp[i]), int(inp.tdoa_tag_resp[i]))):
+                for nd, tg in self._tdoa_ends(inp, i):
                     if nd == self.uav:
                         ends.append(("self", Rm @ self.tags.get(tg, np.zeros(3))))
                     elif nd in self.anchors:

@@ -129,9 +129,10 @@ class RelMsg(UavMsg):
 
 
 class TdoaMsg(UavMsg):
-    """Passive-listening range differences this UAV heard (dataset ``tdoa`` table, listener = uav)."""
+    """Passive-listening range differences this UAV takes part in (dataset ``tdoa`` table)."""
 
     tdoa_t: list[Finite]
+    listener: list[UavId]
     tag: list[Annotated[int, Field(ge=0)]]
     init: list[Annotated[int, Field(ge=0)]]
     tag_init: list[Annotated[int, Field(ge=0)]]
@@ -142,7 +143,7 @@ class TdoaMsg(UavMsg):
 
     @model_validator(mode="after")
     def _shape(self):
-        _same_len(self, "tdoa_t", "tag", "init", "tag_init", "resp", "tag_resp", "rdiff", "sigma")
+        _same_len(self, "tdoa_t", "listener", "tag", "init", "tag_init", "resp", "tag_resp", "rdiff", "sigma")
         return self
 
 
@@ -381,7 +382,7 @@ def epoch_input_to_msgs(inp: EpochInput, participants: list[int]) -> dict[str, U
     }
     if len(inp.tdoa_m):
         ints = lambda x: [int(v) for v in x]  # noqa: E731
-        out["tdoa"] = TdoaMsg(uav=u, k=k, tdoa_t=_f(inp.tdoa_t), tag=ints(inp.tdoa_tag), init=ints(inp.tdoa_init),
+        out["tdoa"] = TdoaMsg(uav=u, k=k, tdoa_t=_f(inp.tdoa_t), listener=ints(inp.tdoa_listener), tag=ints(inp.tdoa_tag), init=ints(inp.tdoa_init),
                               tag_init=ints(inp.tdoa_tag_init), resp=ints(inp.tdoa_resp), tag_resp=ints(inp.tdoa_tag_resp),
                               rdiff=_f(inp.tdoa_m), sigma=_f(inp.tdoa_sigma))
     if inp.gnss_pos is not None:
@@ -413,7 +414,8 @@ def msgs_to_epoch_input(parts: dict[str, UavMsg]) -> EpochInput:
         inp.rel_target, inp.rel_az, inp.rel_el, inp.rel_sigma = i(r.target), a(r.az), a(r.el), a(r.sigma)
     d = parts.get("tdoa")
     if d is not None and len(d.tdoa_t):
-        inp.tdoa_t, inp.tdoa_tag, inp.tdoa_init, inp.tdoa_tag_init = a(d.tdoa_t), i(d.tag), i(d.init), i(d.tag_init)
+        inp.tdoa_t, inp.tdoa_listener, inp.tdoa_tag = a(d.tdoa_t), i(d.listener), i(d.tag)
+        inp.tdoa_init, inp.tdoa_tag_init = i(d.init), i(d.tag_init)
         inp.tdoa_resp, inp.tdoa_tag_resp, inp.tdoa_m, inp.tdoa_sigma = i(d.resp), i(d.tag_resp), a(d.rdiff), a(d.sigma)
     return inp
 
@@ -526,7 +528,7 @@ _INPUT_F = (("imu_t", "n_imu", 1), ("gyro", "n_imu", 3), ("accel", "n_imu", 3), 
             ("range_m", "n_range", 1), ("range_sigma", "n_range", 1), ("rel_az", "n_rel", 1), ("rel_el", "n_rel", 1),
             ("rel_sigma", "n_rel", 1), ("tdoa_t", "n_tdoa", 1), ("tdoa_m", "n_tdoa", 1), ("tdoa_sigma", "n_tdoa", 1))
 _INPUT_I = (("range_other", "n_range"), ("range_tag_self", "n_range"), ("range_tag_other", "n_range"), ("rel_target", "n_rel"),
-            ("tdoa_tag", "n_tdoa"), ("tdoa_init", "n_tdoa"), ("tdoa_tag_init", "n_tdoa"), ("tdoa_resp", "n_tdoa"),
+            ("tdoa_listener", "n_tdoa"), ("tdoa_tag", "n_tdoa"), ("tdoa_init", "n_tdoa"), ("tdoa_tag_init", "n_tdoa"), ("tdoa_resp", "n_tdoa"),
             ("tdoa_tag_resp", "n_tdoa"))
 
 
@@ -572,9 +574,9 @@ def decode_input(payload: bytes, *, uav: int | None = None, min_k: int | None = 
         raise WireError("invalid", "negative range, sigma or id")
     if h.n_rel and (a["rel_sigma"].min() <= 0 or a["rel_target"].min() < 1):
         raise WireError("invalid", "non-positive sigma or bad target id")
-    if h.n_tdoa and (a["tdoa_sigma"].min() <= 0 or min(a[c].min() for c in ("tdoa_tag", "tdoa_init", "tdoa_tag_init",
-                                                                             "tdoa_resp", "tdoa_tag_resp")) < 0):
-        raise WireError("invalid", "non-positive tdoa sigma or negative id")
+    if h.n_tdoa and (a["tdoa_sigma"].min() <= 0 or a["tdoa_listener"].min() < 1
+                     or min(a[c].min() for c in ("tdoa_tag", "tdoa_init", "tdoa_tag_init", "tdoa_resp", "tdoa_tag_resp")) < 0):
+        raise WireError("invalid", "non-positive tdoa sigma or bad id")
     if (a["range_other"] == h.uav).any() or (a["rel_target"] == h.uav).any():
         raise WireError("invalid", "a UAV cannot range to or observe itself")
     inp = EpochInput(uav=h.uav, k=h.k, t=h.t, t_prev=h.t_prev, imu_t=a["imu_t"], gyro=a["gyro"], accel=a["accel"],
@@ -590,6 +592,6 @@ def decode_input(payload: bytes, *, uav: int | None = None, min_k: int | None = 
     if h.n_rel:
         inp.rel_target, inp.rel_az, inp.rel_el, inp.rel_sigma = a["rel_target"], a["rel_az"], a["rel_el"], a["rel_sigma"]
     if h.n_tdoa:
-        for name in ("tdoa_t", "tdoa_m", "tdoa_sigma", "tdoa_tag", "tdoa_init", "tdoa_tag_init", "tdoa_resp", "tdoa_tag_resp"):
+        for name in ("tdoa_t", "tdoa_m", "tdoa_sigma", "tdoa_listener", "tdoa_tag", "tdoa_init", "tdoa_tag_init", "tdoa_resp", "tdoa_tag_resp"):
             setattr(inp, name, a[name])
     return inp, list(h.participants)
