@@ -8,10 +8,12 @@ bounded). Per UAV and epoch k: Pose3 X, velocity V, bias B; factors:
 - GNSS position (``GPSFactor``) and velocity (prior on V) when a fix exists;
 - every UWB range of the epoch between two UAVs (``RangeFactorPose3``, or a lever-arm custom factor
   when the tags are not at the body origin) and to fixed anchors (``factors.range_to_point_factor``);
-- every relative azimuth/elevation of eq. 27 (``factors.azel_factor``; setting ``central_use_rel``).
+- every relative azimuth/elevation of eq. 27 (``factors.azel_factor``; setting ``central_use_rel``);
+- every passive-listening range difference of the epoch (``factors.tdoa_factor``, from
+  ``EpochSlicer.tdoa_labels``; a dataset's optional ``tdoa`` table).
 
-**Oracle**: it reads the truth fault labels (``EpochSlicer.range_labels``) and drops every range
-that is labelled faulty: ``fault_kind != NONE`` **or** ``|fault_err| > meta.fault_threshold_m``
+**Oracle**: it reads the truth fault labels (``EpochSlicer.range_labels``, ``tdoa_labels``) and
+drops every range or range difference that is labelled faulty: ``fault_kind != NONE`` **or** ``|fault_err| > meta.fault_threshold_m``
 (the scoring definition of a faulty link-epoch, widened to every labelled fault episode, e.g. an
 interfered link whose bias happens to be small still has 5x noise). No estimator that is compared
 with it may see these labels. Ranges are attached to the epoch's states (event times inside the
