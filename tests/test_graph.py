@@ -410,3 +410,32 @@ def test_tdoa_links_exact_and_used(noiseless):
     rm = lambda e: float(np.sqrt(np.mean(np.sum(e ** 2, 1))))  # noqa: E731
     assert rm(clean) < 0.05, rm(clean)
     assert rm(biased) > 2 * rm(clean) + 0.02, (rm(clean), rm(biased))
+
+
+def test_neighbour_tag_lever_arms_placed_with_broadcast_attitude(noiseless):
+    """Tags 0.4 m off the body origin, ranges between the tags (exact): the node places its own
+    tag with its attitude and the neighbour's with the neighbour's broadcast attitude, so the
+    noiseless error stays near zero; ignoring the neighbour's lever arm (``peer_levers`` false,
+    the former model) leaves a clear error."""
+    import dataclasses
+
+    sc, ds = noiseless
+    lever = np.array([0.4, -0.3, 0.1])
+    nodes = [n.model_copy(update={"tags": {0: tuple(lever)}}) if n.kind == "uav" else n for n in ds.meta.nodes]
+    meta = ds.meta.model_copy(update={"nodes": nodes})
+    tr, r = ds.table("truth"), dict(ds.table("ranges"))
+
+    def tag(node, t):
+        i = np.flatnonzero((tr["node"] == node) & (np.abs(tr["t"] - t) < 1e-9))[0]
+        q = gtsam.Rot3.Quaternion(tr["qw"][i], tr["qx"][i], tr["qy"][i], tr["qz"][i]).matrix()
+        return np.array([tr["pe"][i], tr["pn"][i], tr["pu"][i]]) + q @ lever
+
+    uavs = set(meta.uav_ids())
+    r["range"] = np.array([np.linalg.norm(tag(a, t) - tag(b, t)) if a in uavs and b in uavs else d
+                           for t, a, b, d in zip(r["t"], r["a"], r["b"], r["range"])])
+    moved = dataclasses.replace(ds, meta=meta, tables={**ds.tables, "ranges": r})
+    rm = lambda e: float(np.sqrt(np.mean(np.sum(e ** 2, 1))))  # noqa: E731
+    placed = rm(_run(moved, FgEstimator, 3, _settings(sc))[0])
+    ignored = rm(_run(moved, FgEstimator, 3, _settings(sc, peer_levers=False))[0])
+    assert placed < 0.05, placed
+    assert ignored > 2 * placed + 0.02, (placed, ignored)

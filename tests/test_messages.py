@@ -15,7 +15,12 @@ def _state(rng):
     return NodeState(3, 5, 2, 5.0, rng.normal(size=3) * 1e3, np.diag(rng.random(3)), rng.normal(size=3),
                      float("inf"), {1: 12.345678901234567, 7: float(rng.random() * 400)},
                      {1: (float(rng.uniform(-3, 3)), float(rng.uniform(-1.5, 1.5)), 0.017453292519943295),
-                      9: (-np.pi, np.pi / 2, 1e-3)})
+                      9: (-np.pi, np.pi / 2, 1e-3)}, _unit_quat(rng))
+
+
+def _unit_quat(rng):
+    q = rng.normal(size=4)
+    return q / np.linalg.norm(q)
 
 
 def test_state_float64_exact():
@@ -24,7 +29,7 @@ def test_state_float64_exact():
     s2 = M.msg_to_state(M.decode(M.StateMsg, M.state_to_msg(s).encode(), uav=3))
     assert np.array_equal(s.pos, s2.pos) and np.array_equal(s.pos_cov, s2.pos_cov) and np.array_equal(s.vel, s2.vel)
     assert s2.delta_m == float("inf") and s2.ranges == s.ranges and (s2.uav, s2.k, s2.r) == (3, 5, 2)
-    assert s2.bearings == s.bearings
+    assert s2.bearings == s.bearings and np.array_equal(s2.quat, s.quat)
 
 
 def test_extreme_floats_exact():
@@ -215,6 +220,9 @@ def test_state_frame_exact():
     assert np.array_equal(s.pos, s2.pos) and np.array_equal(s.pos_cov, s2.pos_cov) and np.array_equal(s.vel, s2.vel)
     assert s2.delta_m == float("inf") and s2.ranges == s.ranges and list(s2.ranges) == sorted(s.ranges)
     assert s2.bearings == s.bearings and list(s2.bearings) == sorted(s.bearings)
+    assert np.array_equal(s2.quat, s.quat)
+    s.quat = None  # no attitude (e.g. fkf) travels as zeros and comes back as None
+    assert M.decode_state(M.encode_state(s)).quat is None
     assert (s2.uav, s2.k, s2.r, s2.t) == (3, 5, 2, 5.0)
 
 
@@ -230,6 +238,10 @@ def test_state_frame_rejects():
     bad = _state(np.random.default_rng(9))
     bad.ranges = {1: -3.0}
     cases.append((M.encode_state(bad), "invalid"))
+    for quat in (np.array([1.0, 0.1, 0.0, 0.0]), np.array([np.nan, 0.0, 0.0, 0.0])):
+        bad = _state(np.random.default_rng(9))
+        bad.quat = quat
+        cases.append((M.encode_state(bad), "invalid"))
     for bearing in ((0.0, 1.6, 0.01), (3.2, 0.0, 0.01), (0.0, 0.0, 0.0), (0.0, float("nan"), 0.01)):
         bad = _state(np.random.default_rng(9))
         bad.bearings = {4: bearing}

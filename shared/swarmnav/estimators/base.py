@@ -60,6 +60,9 @@ class NodeState:
     # round 0 only: this node's relative az/el observations (eq. 27, ENU), target id ->
     # (azimuth rad, elevation rad, sigma rad), so the target can use them too
     bearings: dict[int, tuple[float, float, float]] = field(default_factory=dict)
+    # body FLU -> ENU attitude (w, x, y, z) of the sender, None = not given: receivers place the
+    # sender's UWB tags (lever arms in meta) with it; constant over an epoch's rounds
+    quat: np.ndarray | None = None
 
 
 @dataclass

@@ -158,6 +158,10 @@ class GraphEstimator(NodeEstimator):
                                          int(s.get("residual_window_max_epochs", 30)))
         node = meta.node(uav)
         self.tags = {int(k): np.asarray(v, float) for k, v in node.tags.items()}
+        # every UAV's tag lever arms (neighbours' tags are placed with their broadcast attitude)
+        self._tag_levers = {n.id: {int(k): np.asarray(v, float) for k, v in n.tags.items()}
+                            for n in meta.nodes if n.kind == "uav"}
+        self.peer_levers = bool(s.get("peer_levers", True))
         self.anchors = meta.anchors()
         self.params = preintegration_params(node.imu, meta.earth)
         # Conditioning: the tiny bias random walks of a good IMU (~1e-7 rad/s/sqrt(s)) make the
@@ -313,7 +317,8 @@ class GraphEstimator(NodeEstimator):
         self.Lam = None
         self.delta_h = None
         self._last_state = NodeState(self.uav, inp.k, 0, inp.t, self.p.copy(), self._broadcast_cov(),
-                                     self.vel.copy(), float("inf"), dict(self.my_ranges), self._own_bearings(inp))
+                                     self.vel.copy(), float("inf"), dict(self.my_ranges), self._own_bearings(inp),
+                                     self._quat())
         return self._last_state
 
     def _drag_factor(self, g, n: int, inp: EpochInput):
@@ -358,6 +363,19 @@ class GraphEstimator(NodeEstimator):
         self.pose = est.atPose3(X(self.n))
         self.vel = np.asarray(est.atVector(V(self.n)), float)
         self.bias = est.atConstantBias(B(self.n))
+
+    def _quat(self) -> np.ndarray:
+        q = self.pose.rotation().toQuaternion()
+        return np.array([q.w(), q.x(), q.y(), q.z()])
+
+    def _peer_lever(self, peers: dict[int, NodeState], node: int, tag: int) -> np.ndarray:
+        """ENU offset of a neighbour's tag from its broadcast position: R(q_peer)·lever (zero when
+        the neighbour sends no attitude or the tag has no lever arm)."""
+        q = peers[node].quat
+        lev = self._tag_levers.get(node, {}).get(int(tag))
+        if q is None or lev is None or not np.any(lev):
+            return np.zeros(3)
+        return _rot3(q).matrix() @ lev
 
     def _broadcast_cov(self) -> np.ndarray:
         return self.P_loc.copy()
@@ -520,7 +538,7 @@ class GraphEstimator(NodeEstimator):
         self.p = p
         self._links_ready = True
         s = NodeState(self.uav, self.k, r, self.t, p.copy(), self._broadcast_cov(), self.vel.copy(),
-                      float(np.linalg.norm(p - p_prev)))
+                      float(np.linalg.norm(p - p_prev)), quat=self._quat())
         self._last_state = s
         return s
 
@@ -553,6 +571,11 @@ class GraphEstimator(NodeEstimator):
              "nb": nb, "rng_owner": np.array(owner, int), "rng_node": np.array([idx[o] for o in owner], int)}
         if len(rows):
             c["rng_lever"] = np.array([self.tags.get(int(t), np.zeros(3)) for t in inp.range_tag_self[rows]]) @ Rm.T
+            if self.peer_levers:
+                # the neighbour's tag: lever arm rotated with its broadcast attitude (the own one
+                # enters as rng_lever, so the range is between the two tags)
+                c["rng_lever"] = c["rng_lever"] - np.array([self._peer_lever(peers, int(o), int(t)) for o, t in
+                                                            zip(owner, inp.range_tag_other[rows])])
             c["rng_sig2"] = np.where(inp.range_sigma[rows] > 0, inp.range_sigma[rows], self.uwb_sigma) ** 2
             c["rng_z"] = inp.range_m[rows]
         if self.use_azel and self.rel_sigma:
@@ -582,11 +605,11 @@ class GraphEstimator(NodeEstimator):
                 ends = []
                 for nd, tg in self._tdoa_ends(inp, i):
                     if nd == self.uav:
-                        ends.append(("self", Rm @ self.tags.get(tg, np.zeros(3))))
+                        ends.append(("self", Rm @ self.tags.get(tg, np.zeros(3)), None))
                     elif nd in self.anchors:
-                        ends.append(("fixed", self._tdoa_end(nd, tg)[1]))
+                        ends.append(("fixed", self._tdoa_end(nd, tg)[1], None))
                     elif nd in peers:
-                        ends.append(("peer", idx[nd]))
+                        ends.append(("peer", idx[nd], self._peer_lever(peers, nd, tg) if self.peer_levers else np.zeros(3)))
                     else:
                         break
                 else:
@@ -628,8 +651,8 @@ class GraphEstimator(NodeEstimator):
                              c["azel_z"][:na][keep])
         if "tdoa" in c:
             nodes = c["nodes"]
-            L["tdoa"] = [([(kind, P[x], C[x] * (infl if infl is not None else self._infl(nodes[x])))
-                           if kind == "peer" else (kind, x, None) for kind, x in ends], z, sig2)
+            L["tdoa"] = [([(kind, P[x] + lev, C[x] * (infl if infl is not None else self._infl(nodes[x])))
+                           if kind == "peer" else (kind, x, None) for kind, x, lev in ends], z, sig2)
                          for ends, z, sig2 in c["tdoa"]]
         return L
 

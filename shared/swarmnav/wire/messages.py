@@ -202,6 +202,14 @@ class StateMsg(UavMsg):
     ranges: dict[int, NonNeg] = Field(default_factory=dict)
     # target id -> [azimuth rad, elevation rad, sigma rad] (round 0)
     bearings: dict[int, Annotated[list[Finite], Field(min_length=3, max_length=3)]] = Field(default_factory=dict)
+    quat: Annotated[list[Finite], Field(min_length=4, max_length=4)] | None = None  # w, x, y, z body -> ENU
+
+    @field_validator("quat")
+    @classmethod
+    def _unit(cls, q):
+        if q is not None and abs(math.sqrt(sum(x * x for x in q)) - 1.0) > 1e-6:
+            raise ValueError("attitude quaternion not of unit norm")
+        return q
 
     @field_validator("bearings")
     @classmethod
@@ -330,14 +338,16 @@ def _f(a) -> list[float]:
 def state_to_msg(s: NodeState) -> StateMsg:
     return StateMsg(uav=s.uav, k=s.k, r=s.r, t=float(s.t), pos=_f(s.pos), pos_cov=_f(s.pos_cov), vel=_f(s.vel),
                     delta_m=float(s.delta_m), ranges={int(o): float(d) for o, d in sorted(s.ranges.items())},
-                    bearings={int(o): [float(x) for x in b] for o, b in sorted(s.bearings.items())})
+                    bearings={int(o): [float(x) for x in b] for o, b in sorted(s.bearings.items())},
+                    quat=None if s.quat is None else _f(s.quat))
 
 
 def msg_to_state(m: StateMsg) -> NodeState:
     return NodeState(uav=m.uav, k=m.k, r=m.r, t=m.t, pos=np.array(m.pos, np.float64),
                      pos_cov=np.array(m.pos_cov, np.float64).reshape(3, 3), vel=np.array(m.vel, np.float64),
                      delta_m=m.delta_m, ranges={int(o): float(d) for o, d in sorted(m.ranges.items())},
-                     bearings={int(o): (float(b[0]), float(b[1]), float(b[2])) for o, b in sorted(m.bearings.items())})
+                     bearings={int(o): (float(b[0]), float(b[1]), float(b[2])) for o, b in sorted(m.bearings.items())},
+                     quat=None if m.quat is None else np.array(m.quat, np.float64))
 
 
 def estimate_to_msg(e: NodeEstimate, **extra) -> EstimateMsg:
@@ -436,8 +446,9 @@ SENSOR_MSG: dict[str, type[UavMsg]] = {"imu": ImuMsg, "gnss": GnssMsg, "uwb": Uw
 #   >= 0, sigmas > 0, ids >= 0, no self-ranging or self-observation).
 # * ``uav/<id>/state`` (node -> peers, every round): ``b"SNS"`` + version byte, int32 LE
 #   uav, k, r, uint32 n (ranges), uint32 m (bearings), float64 LE [t, pos(3), pos_cov(9,
-#   row-major), vel(3), delta_m, reserved, range values(n), bearings (az, el, sigma)(m)], int64 LE
-#   range peer ids(n), bearing target ids(m). Decoded straight into the core's NodeState.
+#   row-major), vel(3), delta_m, reserved, quat(4: w, x, y, z; all zero = no attitude), range
+#   values(n), bearings (az, el, sigma)(m)], int64 LE range peer ids(n), bearing target ids(m).
+#   Decoded straight into the core's NodeState.
 #
 # float64 bytes are copied, so values arrive bit-identical (as with the JSON repr before).
 # The state queryable's history replies stay JSON (:class:`HistoryMsg`, rare).
@@ -448,7 +459,7 @@ _STATE_MAGIC = b"SNS"
 _INPUT_MAGIC = b"SNI"
 _STATE_HDR = struct.Struct("<3sBiiiII")
 _INPUT_HDR = struct.Struct("<3sBI")
-_STATE_NF = 18  # t, pos 3, cov 9, vel 3, delta_m, then n range values
+_STATE_NF = 22  # t, pos 3, cov 9, vel 3, delta_m, reserved, quat 4, then n range values
 
 
 def _check_magic(payload: bytes, magic: bytes, min_len: int) -> None:
@@ -468,7 +479,8 @@ def encode_state(s: NodeState) -> bytes:
     f[4:13] = np.asarray(s.pos_cov, np.float64).ravel()
     f[13:16] = np.asarray(s.vel, np.float64).ravel()
     f[16] = s.delta_m
-    f[17] = 0.0  # reserved (keeps the id block 8-byte aligned either way)
+    f[17] = 0.0  # reserved
+    f[18:22] = 0.0 if s.quat is None else np.asarray(s.quat, np.float64).ravel()
     f[_STATE_NF:_STATE_NF + n] = [s.ranges[o] for o in ids]
     f[_STATE_NF + n:] = np.asarray([s.bearings[o] for o in bids], np.float64).ravel()
     return (_STATE_HDR.pack(_STATE_MAGIC, SCHEMA_VERSION, int(s.uav), int(s.k), int(s.r), n, m)
@@ -486,8 +498,11 @@ def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = 
     ids = np.frombuffer(payload, "<i8", n + m, _STATE_HDR.size + 8 * nf)
     if u < 1 or k < 0 or r < 0:
         raise WireError("invalid", f"ids uav {u} k {k} r {r}")
-    if not (np.isfinite(f[:16]).all() and np.isfinite(f[_STATE_NF:]).all()):
+    if not (np.isfinite(f[:16]).all() and np.isfinite(f[18:]).all()):
         raise WireError("invalid", "non-finite value")
+    q = f[18:22]
+    if q.any() and abs(float(np.linalg.norm(q)) - 1.0) > 1e-6:
+        raise WireError("invalid", "attitude quaternion not of unit norm")
     rng, bear = f[_STATE_NF:_STATE_NF + n], f[_STATE_NF + n:].reshape(m, 3)
     if np.isnan(f[16]) or f[16] < 0 or (n + m and ids.min() < 0) or (n and rng.min() < 0):
         raise WireError("invalid", "negative range/delta or id")
@@ -497,6 +512,7 @@ def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = 
     _check_scope(u, k, uav, min_k)
     return NodeState(uav=u, k=k, r=r, t=float(f[0]), pos=f[1:4].copy(), pos_cov=f[4:13].reshape(3, 3).copy(),
                      vel=f[13:16].copy(), delta_m=float(f[16]), ranges=dict(zip(ids[:n].tolist(), rng.tolist())),
+                     quat=q.copy() if q.any() else None,
                      bearings={int(o): (float(b[0]), float(b[1]), float(b[2])) for o, b in zip(ids[n:].tolist(), bear)})
 
 
