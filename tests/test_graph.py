@@ -9,6 +9,7 @@ from gtsam.symbol_shorthand import X
 
 from swarmnav.config import load_config, parse_config
 from swarmnav.dataset import EpochSlicer
+from swarmnav.estimators.base import LinkClass
 from swarmnav.estimators.graph import AtvfgEstimator, FgEstimator, InsEstimator
 from swarmnav.initial import initial_states
 from swarmnav.protocol import node_epoch, run_epoch_in_process
@@ -24,7 +25,7 @@ def _settings(sc, **kw):
     return s
 
 
-def _run(ds, cls, seed, settings, k_max=None):
+def _run(ds, cls, seed, settings, k_max=None, links=None):
     sl = EpochSlicer(ds)
     uavs = ds.meta.uav_ids()
     inits = initial_states(ds, seed)
@@ -37,6 +38,8 @@ def _run(ds, cls, seed, settings, k_max=None):
                                     for u in uavs})
         t = ds.meta.epoch_time(k)
         for u, e in out.items():
+            if links is not None:
+                links.extend(e.links)
             i = np.flatnonzero((tr["node"] == u) & (np.abs(tr["t"] - t) < 1e-6))[0]
             d = e.pos - np.array([tr["pe"][i], tr["pn"][i], tr["pu"][i]])
             err.append(d)
@@ -412,30 +415,35 @@ def test_tdoa_links_exact_and_used(noiseless):
     assert rm(biased) > 2 * rm(clean) + 0.02, (rm(clean), rm(biased))
 
 
-def test_neighbour_tag_lever_arms_placed_with_broadcast_attitude(noiseless):
-    """Tags 0.4 m off the body origin, ranges between the tags (exact): the node places its own
+@pytest.mark.parametrize("algo", ["fg", "atvfg"])
+def test_neighbour_tag_lever_arms_placed_with_broadcast_attitude(noiseless, algo):
+    """Tags 0.5 m off the body origin (alternating sides), ranges between the tags (exact): the node places its own
     tag with its attitude and the neighbour's with the neighbour's broadcast attitude, so the
     noiseless error stays near zero; ignoring the neighbour's lever arm (``peer_levers`` false,
-    the former model) leaves a clear error."""
+    the former model) leaves a clear error. atvfg: the own links' detection residuals are
+    tag-to-tag too, so the lever arms raise no false alarm."""
     import dataclasses
 
     sc, ds = noiseless
-    lever = np.array([0.4, -0.3, 0.1])
-    nodes = [n.model_copy(update={"tags": {0: tuple(lever)}}) if n.kind == "uav" else n for n in ds.meta.nodes]
+    lever = {n.id: np.array([0.4, -0.3, 0.1]) * (-1) ** n.id for n in ds.meta.nodes}  # alternate sides
+    nodes = [n.model_copy(update={"tags": {0: tuple(lever[n.id])}}) if n.kind == "uav" else n for n in ds.meta.nodes]
     meta = ds.meta.model_copy(update={"nodes": nodes})
     tr, r = ds.table("truth"), dict(ds.table("ranges"))
 
     def tag(node, t):
         i = np.flatnonzero((tr["node"] == node) & (np.abs(tr["t"] - t) < 1e-9))[0]
         q = gtsam.Rot3.Quaternion(tr["qw"][i], tr["qx"][i], tr["qy"][i], tr["qz"][i]).matrix()
-        return np.array([tr["pe"][i], tr["pn"][i], tr["pu"][i]]) + q @ lever
+        return np.array([tr["pe"][i], tr["pn"][i], tr["pu"][i]]) + q @ lever[node]
 
     uavs = set(meta.uav_ids())
     r["range"] = np.array([np.linalg.norm(tag(a, t) - tag(b, t)) if a in uavs and b in uavs else d
                            for t, a, b, d in zip(r["t"], r["a"], r["b"], r["range"])])
     moved = dataclasses.replace(ds, meta=meta, tables={**ds.tables, "ranges": r})
     rm = lambda e: float(np.sqrt(np.mean(np.sum(e ** 2, 1))))  # noqa: E731
-    placed = rm(_run(moved, FgEstimator, 3, _settings(sc))[0])
-    ignored = rm(_run(moved, FgEstimator, 3, _settings(sc, peer_levers=False))[0])
+    links = []
+    placed = rm(_run(moved, CLASSES[algo], 3, _settings(sc), links=links)[0])
+    ignored = rm(_run(moved, CLASSES[algo], 3, _settings(sc, peer_levers=False))[0])
     assert placed < 0.05, placed
     assert ignored > 2 * placed + 0.02, (placed, ignored)
+    if algo == "atvfg":
+        assert links and all(li.cls == LinkClass.H2_NORMAL for li in links), [li for li in links if li.cls != LinkClass.H2_NORMAL][:3]

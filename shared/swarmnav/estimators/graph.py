@@ -515,6 +515,16 @@ class GraphEstimator(NodeEstimator):
         res_own = {}
         if self.detect and nb:
             res = c["pairs"].residuals(P)
+            if c.get("rng_has_lever"):
+                # own links: residual between the two tags (own lever arm with the own attitude, the
+                # neighbour's with its broadcast one); other pairs stay origin-to-origin (no tag ids)
+                res = res.copy()
+                me = P[c["idx"][self.uav]]
+                for i, o in zip(c["mine"], c["mine_other"]):
+                    m = c["rng_owner"] == o
+                    if m.any():
+                        d = me + c["rng_lever"][m] - P[c["idx"][o]]
+                        res[i] = abs(float(np.mean(c["rng_z"][m] - np.linalg.norm(d, axis=1))))
             self.delta_h, cls, w = det.detect(res, self.delta_l, self.window, self.floor_factor,
                                                  self.kmeans_backend, self.ceil_factor, self.cap_h1)
             self._final_res = res
@@ -577,6 +587,7 @@ class GraphEstimator(NodeEstimator):
                 c["rng_lever"] = c["rng_lever"] - np.array([self._peer_lever(peers, int(o), int(t)) for o, t in
                                                             zip(owner, inp.range_tag_other[rows])])
             c["rng_sig2"] = np.where(inp.range_sigma[rows] > 0, inp.range_sigma[rows], self.uwb_sigma) ** 2
+            c["rng_has_lever"] = bool(self.peer_levers and np.any(c["rng_lever"]))
             c["rng_z"] = inp.range_m[rows]
         if self.use_azel and self.rel_sigma:
             # own observations (observer = this node), then the neighbours' observations of this
