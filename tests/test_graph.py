@@ -406,13 +406,17 @@ def _with_tdoa(ds, offset_m=0.0, sigma=0.005):
 def test_tdoa_links_exact_and_used(noiseless):
     """Exact range differences (σ 5 mm, stiffer than the 1 cm GNSS) keep the noiseless error near
     zero — geometry and signs of the cooperative tdoa link are right; the same rows biased by
-    0.3 m (no Huber) pull the estimate away — they are used."""
+    0.3 m (fg: Gaussian links) pull the estimate away — they are used."""
     sc, ds = noiseless
     clean, _, _ = _run(_with_tdoa(ds), FgEstimator, 3, _settings(sc))
-    biased, _, _ = _run(_with_tdoa(ds, 0.3), FgEstimator, 3, _settings(sc, tdoa_huber_k=1e9))
+    biased, _, _ = _run(_with_tdoa(ds, 0.3), FgEstimator, 3, _settings(sc))
     rm = lambda e: float(np.sqrt(np.mean(np.sum(e ** 2, 1))))  # noqa: E731
     assert rm(clean) < 0.05, rm(clean)
     assert rm(biased) > 2 * rm(clean) + 0.02, (rm(clean), rm(biased))
+    # atvfg with tdoa_detection (opt-in): 0.3 m residuals are far above Δh (3σ = 15 mm, Δh >= 3Δl),
+    # so the biased links are classified H0 and dropped
+    dropped, _, _ = _run(_with_tdoa(ds, 0.3), AtvfgEstimator, 3, _settings(sc, tdoa_detection=True))
+    assert rm(dropped) < 0.05, rm(dropped)
 
 
 @pytest.mark.parametrize("algo", ["fg", "atvfg"])

@@ -242,9 +242,18 @@ def detect(pairs_res: np.ndarray, delta_l: float, window: ResidualWindow | None 
     Weights: eq. 24, and with ``cap_h1`` at most (Δl/∂)² (:func:`weight_cap_eq25`)."""
     pool = window.values(pairs_res) if window is not None else pairs_res
     dh = upper_threshold(pool, delta_l, floor_factor, backend, ceil_factor)
-    cls = classify(pairs_res, delta_l, dh)
-    w = weight_eq24(pairs_res, delta_l, dh)
-    if cap_h1:
-        w = np.minimum(w, weight_cap_eq25(pairs_res, delta_l))
-    w[cls == int(H0)] = 0.0
+    cls, w = classify_and_weigh(pairs_res, delta_l, dh, cap_h1)
     return dh, cls, w
+
+
+def classify_and_weigh(res: np.ndarray, delta_l: float, delta_h: float, cap_h1: bool = True
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Classes and weights of residuals at given thresholds: eq. 24 (capped at (Δl/∂)² with
+    ``cap_h1``), 0 for H0. Also used for links outside the residual matrix (graph.py: passive
+    range differences, classified at the ranges' Δh)."""
+    cls = classify(res, delta_l, delta_h)
+    w = weight_eq24(res, delta_l, delta_h)
+    if cap_h1:
+        w = np.minimum(w, weight_cap_eq25(res, delta_l))
+    w[cls == int(H0)] = 0.0
+    return cls, w

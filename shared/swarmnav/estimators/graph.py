@@ -16,9 +16,10 @@ Passive-listening range differences (``EpochInput.tdoa_*``: the rows this node i
 initiator or responder of, as both ends of a range receive it; docs/miluv.md "Fifth pass"): a
 row whose tags are all the node's own or anchors' is an own factor (``factors.tdoa_factor`` under
 the anchor kernel; ``ins`` uses only these); a row that involves a neighbour's tag is a
-cooperative link like a range (the neighbour's broadcast position and covariance, its lever arm
-ignored) with a Huber weight (``tdoa_huber_k``, whitened) in the rounds and in the commit. Off
-with ``use_tdoa = false``.
+cooperative link like a range (the neighbour's broadcast position and covariance, its tag placed
+with its broadcast attitude) in the rounds and in the commit, Gaussian (the paper's detection
+stays on the range links; ``tdoa_detection`` applies it to these links too, measured worse:
+``_tdoa_weights``). Off with ``use_tdoa = false``.
 
 Epoch k (driven by ``swarmnav.protocol``):
 
@@ -204,9 +205,10 @@ class GraphEstimator(NodeEstimator):
         # robust kernel of the known-anchor ranges (whitened threshold k)
         self.anchor_kernel = str(s.get("anchor_kernel", "huber"))
         self.anchor_kernel_k = float(s.get("anchor_kernel_k", 3.0))
-        # passive-listening range differences (own rows: anchor kernel; cooperative: Huber weight)
+        # passive-listening range differences (own rows: anchor kernel; cooperative links
+        # Gaussian, or atvfg's double-threshold test with tdoa_detection: _tdoa_weights)
         self.use_tdoa = bool(s.get("use_tdoa", True))
-        self.tdoa_huber_k = float(s.get("tdoa_huber_k", 3.0))
+        self.tdoa_detection = bool(s.get("tdoa_detection", False))
         imu = node.imu
         self.bias_sigmas = np.r_[[max(imu.accel_bias_sigma, 1e-4)] * 3, [max(imu.gyro_bias_sigma, 1e-6)] * 3]
         self._reset(init.t, init.pos, init.vel, init.quat, np.asarray(init.pos_sigma, float),
@@ -533,6 +535,7 @@ class GraphEstimator(NodeEstimator):
                     weights[o] = float(w[i])
                     res_own[o] = (float(res[i]), int(cls[i]))
         self._weights, self._res_own, self._nb = weights, res_own, nb
+        self._tdoa_w = self._tdoa_weights(c, P)
         self._peers = peers
         self._P = P
         self._C = np.array([peers[u].pos_cov if u != self.uav else np.zeros((3, 3)) for u in c["nodes"]])
@@ -631,6 +634,26 @@ class GraphEstimator(NodeEstimator):
         self._cache = c
         return c
 
+    def _tdoa_weights(self, c: dict, P: np.ndarray) -> np.ndarray:
+        """Weights of the cooperative tdoa links: 1 (Gaussian) by default; with ``tdoa_detection``
+        (atvfg only) the double-threshold test on each link's residual at the round's positions,
+        with Δl and the Δh of the ranges (this epoch's upper threshold, or from the residual
+        window) — measured worse on MILUV (docs/miluv.md "Fifth pass"), off by default."""
+        rows = c.get("tdoa", ())
+        w = np.ones(len(rows))
+        if not (self.detect and self.tdoa_detection and rows):
+            return w
+        res = np.empty(len(rows))
+        me = P[c["idx"][self.uav]]
+        for j, (ends, z, _) in enumerate(rows):
+            pts = [me + x if kind == "self" else (P[x] + lev if kind == "peer" else x) for kind, x, lev in ends]
+            res[j] = abs(z - tdoa_h(*pts)[0])
+        dh = self.delta_h
+        if dh is None:
+            dh = det.upper_threshold(self.window.values(np.zeros(0)), self.delta_l, self.floor_factor,
+                                     self.kmeans_backend, self.ceil_factor)
+        return det.classify_and_weigh(res, self.delta_l, dh, self.cap_h1)[1]
+
     def _prepare_links(self, infl: float | None = None, commit: bool = False):
         """Arrays of this round's active links (weights > 0) for the Gauss-Newton solve; neighbour
         covariances × ``infl`` (None: the double-counting inflation ``_infl``). ``commit``: the
@@ -663,8 +686,8 @@ class GraphEstimator(NodeEstimator):
         if "tdoa" in c:
             nodes = c["nodes"]
             L["tdoa"] = [([(kind, P[x] + lev, C[x] * (infl if infl is not None else self._infl(nodes[x])))
-                           if kind == "peer" else (kind, x, None) for kind, x, lev in ends], z, sig2)
-                         for ends, z, sig2 in c["tdoa"]]
+                           if kind == "peer" else (kind, x, None) for kind, x, lev in ends], z, sig2, w)
+                         for (ends, z, sig2), w in zip(c["tdoa"], self._tdoa_w) if w > 0]
         return L
 
     def _infl(self, o: int) -> float:
@@ -713,18 +736,15 @@ class GraphEstimator(NodeEstimator):
             CiJ = np.einsum("mjk,mkl->mjl", Ci, Jt)
             H += np.einsum("mji,mjl->il", Jt, CiJ)
             gv -= np.einsum("mji,mj->i", CiJ, res)
-        for ends, z, sig2 in L.get("tdoa", ()):
-            # own position p: the listener's tag (and maybe another own tag); neighbours' broadcast
-            # covariance folded into the variance along their gradient; Huber weight on the
-            # whitened residual
+        for ends, z, sig2, w in L.get("tdoa", ()):
+            # own position p: this node's tag(s) among the three; neighbours' broadcast covariance
+            # folded into the variance along their gradient; w = the link's weight (_tdoa_weights)
             pts = [p + x if kind == "self" else x for kind, x, _ in ends]
             h, *grads = tdoa_h(*pts)
             j = sum(gi for (kind, _, _), gi in zip(ends, grads) if kind == "self")
             var = sig2 + sum(gi @ Ce @ gi for (kind, _, Ce), gi in zip(ends, grads) if kind == "peer")
-            r = z - h
-            w = min(1.0, self.tdoa_huber_k * np.sqrt(var) / max(abs(r), 1e-12))
             H += (w / var) * np.outer(j, j)
-            gv += (w * r / var) * j
+            gv += (w * (z - h) / var) * j
         return H, gv
 
     # -- end ---------------------------------------------------------------------------------
