@@ -20,6 +20,7 @@ import os
 import sys
 import time
 import traceback
+import warnings
 from pathlib import Path
 
 HELP = "run estimators in-process over simulated seeds or a dataset; write report, figures, TUM, .rrd"
@@ -378,8 +379,10 @@ def _write_figures(out: Path, res0: dict, truth, res_all: dict, truths: list, wi
         kk = lk["k"][valid].astype(int)
         cnt = lambda m: np.bincount(kk[m] - 1, minlength=K)[:K] if len(kk) else np.zeros(K)  # noqa: E731
         flagged = cls <= 1
-        dh = np.nanmedian(np.where(np.isfinite(r.delta_h_m), r.delta_h_m, np.nan), axis=1) \
-            if np.isfinite(r.delta_h_m).any() else np.full(K, np.nan)
+        with warnings.catch_warnings():  # epochs without any Δh (no ranges, sparse real data): NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            dh = np.nanmedian(np.where(np.isfinite(r.delta_h_m), r.delta_h_m, np.nan), axis=1) \
+                if np.isfinite(r.delta_h_m).any() else np.full(K, np.nan)
         detection_figure(fig / "detection_atvfg.png", t, cnt(faulty), cnt(flagged & faulty), cnt(flagged & ~faulty),
                          cnt(cls == 0), cnt(cls == 1), dh, dl)
 
