@@ -162,7 +162,9 @@ class GraphEstimator(NodeEstimator):
         # every UAV's tag lever arms (neighbours' tags are placed with their broadcast attitude)
         self._tag_levers = {n.id: {int(k): np.asarray(v, float) for k, v in n.tags.items()}
                             for n in meta.nodes if n.kind == "uav"}
-        self.peer_levers = bool(s.get("peer_levers", True))
+        # (skipped when no other UAV's tag is off its body origin, e.g. every simulated scenario)
+        self.peer_levers = bool(s.get("peer_levers", True)) and any(
+            np.any(v) for o, tags in self._tag_levers.items() if o != uav for v in tags.values())
         self.anchors = meta.anchors()
         self.params = preintegration_params(node.imu, meta.earth)
         # Conditioning: the tiny bias random walks of a good IMU (~1e-7 rad/s/sqrt(s)) make the
