@@ -93,3 +93,53 @@ def test_azel_block_factor_jacobian():
             v2.update(i, poses[i].retract(dv))
             num = (f.unwhitenedError(v2) - e0) / eps
             assert np.allclose(A[:, 6 * i + d], num, atol=1e-4), (i, d)
+
+
+def _tdoa_rows(ds, offset_m, kind, err_label=None):
+    """Exact passive range differences (+ offset_m) at every epoch: UAV u listens to the next two
+    UAVs' transaction; every row labelled ``kind`` with fault_err ``err_label`` (default offset_m)."""
+    import dataclasses
+
+    tr = ds.table("truth")
+    uavs = ds.meta.uav_ids()
+    rows = []
+    for k in range(1, ds.meta.n_epochs() + 1):
+        t = ds.meta.epoch_time(k)
+        pos = {}
+        for u in uavs:
+            i = np.flatnonzero((tr["node"] == u) & (np.abs(tr["t"] - t) < 1e-9))[0]
+            pos[u] = np.array([tr["pe"][i], tr["pn"][i], tr["pu"][i]])
+        for j, u in enumerate(uavs):
+            a, b = uavs[(j + 1) % len(uavs)], uavs[(j + 2) % len(uavs)]
+            z = np.linalg.norm(pos[b] - pos[u]) - np.linalg.norm(pos[a] - pos[u]) + offset_m
+            rows.append((t, u, 0, a, 0, b, 0, z, 0.05, int(kind), offset_m if err_label is None else err_label))
+    R = np.array(rows)
+    ints = ("node", "tag", "init", "tag_init", "resp", "tag_resp", "fault_kind")
+    cols = ("t", "node", "tag", "init", "tag_init", "resp", "tag_resp", "rdiff", "sigma", "fault_kind", "fault_err")
+    tab = {c: R[:, i].astype(np.int64) if c in ints else R[:, i] for i, c in enumerate(cols)}
+    return dataclasses.replace(ds, tables={**ds.tables, "tdoa": tab})
+
+
+def _central_rmse(ds, K=20):
+    sl, inits = EpochSlicer(ds), initial_states(ds, 1)
+    c = CentralEstimator(ds.meta, {"central_use_rel": False}, inits)
+    tr = ds.table("truth")
+    err = []
+    for k in range(1, K + 1):
+        out = c.step({u: sl.epoch(k, u) for u in sl.uavs}, sl.range_labels(k), sl.tdoa_labels(k))
+        for u, e in out.items():
+            i = np.flatnonzero((tr["node"] == u) & np.isclose(tr["t"], e.t))[0]
+            err.append(e.pos - [tr["pe"][i], tr["pn"][i], tr["pu"][i]])
+    return float(np.sqrt(np.mean(np.sum(np.array(err) ** 2, 1))))
+
+
+def test_central_uses_tdoa_and_drops_labelled_rows(smoke):
+    """Exact range differences (σ 5 cm) make the oracle better; rows biased by 2 m and labelled
+    faulty are dropped (the same result as no rows); unlabelled, they make it worse."""
+    base = _central_rmse(smoke)
+    exact = _central_rmse(_tdoa_rows(smoke, 0.0, FaultKind.NONE))
+    labelled = _central_rmse(_tdoa_rows(smoke, 2.0, FaultKind.NLOS_REAL))
+    unlabelled = _central_rmse(_tdoa_rows(smoke, 2.0, FaultKind.NONE, err_label=0.0))
+    assert exact < 0.9 * base, (base, exact)
+    assert labelled == base
+    assert unlabelled > 1.2 * base, (base, unlabelled)

@@ -380,6 +380,49 @@ def test_own_bearings_are_wrapped_and_valid_for_the_state_frame():
     assert decode_state(encode_state(s), uav=u).bearings == b
 
 
+def _with_anchor_tdoa(ds, offset_m=0.0, sigma=0.005):
+    """The dataset plus two anchors (nodes 100, 101) and, at every epoch, each UAV's exact
+    passive range difference of the anchors' transaction (own tag + two anchors: an own row)."""
+    import dataclasses
+
+    from swarmnav.dataset import Node
+
+    tr = ds.table("truth")
+    centre = np.array([tr["pe"].mean(), tr["pn"].mean(), tr["pu"].mean()])
+    anchors = {100: centre + [150.0, 40.0, 30.0], 101: centre + [-60.0, -170.0, 10.0]}
+    meta = ds.meta.model_copy(update={"nodes": list(ds.meta.nodes) + [
+        Node(id=a, kind="anchor", role="anchor", position_enu=tuple(map(float, p)), tags={0: (0.0, 0.0, 0.0)})
+        for a, p in anchors.items()]})
+    rows = []
+    for k in range(1, ds.meta.n_epochs() + 1):
+        t = ds.meta.epoch_time(k)
+        for u in ds.meta.uav_ids():
+            i = np.flatnonzero((tr["node"] == u) & (np.abs(tr["t"] - t) < 1e-9))[0]
+            p = np.array([tr["pe"][i], tr["pn"][i], tr["pu"][i]])
+            z = np.linalg.norm(anchors[101] - p) - np.linalg.norm(anchors[100] - p) + offset_m
+            rows.append((t, u, 0, 100, 0, 101, 0, z, sigma, 0, offset_m))
+    return dataclasses.replace(ds, meta=meta, tables={**ds.tables, "tdoa": _tdoa_table(rows)})
+
+
+def _tdoa_table(rows):
+    R = np.array(rows)
+    cols = ("t", "node", "tag", "init", "tag_init", "resp", "tag_resp", "rdiff", "sigma", "fault_kind", "fault_err")
+    return {c: (R[:, i].astype(np.int64) if c in ("node", "tag", "init", "tag_init", "resp", "tag_resp", "fault_kind")
+                else R[:, i]) for i, c in enumerate(cols)}
+
+
+def test_own_tdoa_rows_on_the_epoch_pose(noiseless):
+    """Rows whose other tags are anchors are own factors on the epoch's pose (ins uses them): exact
+    rows (σ 5 mm) keep the noiseless error near zero — on the previous epoch's pose they cost
+    ~7 cm —, the same rows biased by 0.5 m pull the estimate away."""
+    sc, ds = noiseless
+    rm = lambda e: float(np.sqrt(np.mean(np.sum(e ** 2, 1))))  # noqa: E731
+    exact = rm(_run(_with_anchor_tdoa(ds), InsEstimator, 3, _settings(sc))[0])
+    biased = rm(_run(_with_anchor_tdoa(ds, 0.5), InsEstimator, 3, _settings(sc, anchor_kernel_k=1e9))[0])
+    assert exact < 0.02, exact
+    assert biased > 2 * exact + 0.02, (exact, biased)
+
+
 def _with_tdoa(ds, offset_m=0.0, sigma=0.005):
     """The dataset plus exact passive range differences at every epoch time: each UAV listens to
     the next two UAVs' transaction (tags at the body origin in smoke), + ``offset_m``."""
@@ -396,11 +439,7 @@ def _with_tdoa(ds, offset_m=0.0, sigma=0.005):
             a, b = uavs[(j + 1) % len(uavs)], uavs[(j + 2) % len(uavs)]
             z = np.linalg.norm(pos[b] - pos[u]) - np.linalg.norm(pos[a] - pos[u]) + offset_m
             rows.append((t, u, 0, a, 0, b, 0, z, sigma, 0, offset_m))
-    R = np.array(rows)
-    cols = ("t", "node", "tag", "init", "tag_init", "resp", "tag_resp", "rdiff", "sigma", "fault_kind", "fault_err")
-    tab = {c: (R[:, i].astype(np.int64) if c in ("node", "tag", "init", "tag_init", "resp", "tag_resp", "fault_kind")
-               else R[:, i]) for i, c in enumerate(cols)}
-    return dataclasses.replace(ds, tables={**ds.tables, "tdoa": tab})
+    return dataclasses.replace(ds, tables={**ds.tables, "tdoa": _tdoa_table(rows)})
 
 
 def test_tdoa_links_exact_and_used(noiseless):
@@ -416,7 +455,9 @@ def test_tdoa_links_exact_and_used(noiseless):
     # atvfg with tdoa_detection (opt-in): 0.3 m residuals are far above Δh (3σ = 15 mm, Δh >= 3Δl),
     # so the biased links are classified H0 and dropped
     dropped, _, _ = _run(_with_tdoa(ds, 0.3), AtvfgEstimator, 3, _settings(sc, tdoa_detection=True))
+    kept, _, _ = _run(_with_tdoa(ds, 0.3), AtvfgEstimator, 3, _settings(sc))
     assert rm(dropped) < 0.05, rm(dropped)
+    assert rm(kept) > 2 * rm(dropped) + 0.02, (rm(dropped), rm(kept))  # default: Gaussian, used
 
 
 @pytest.mark.parametrize("algo", ["fg", "atvfg"])

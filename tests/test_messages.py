@@ -15,7 +15,7 @@ def _state(rng):
     return NodeState(3, 5, 2, 5.0, rng.normal(size=3) * 1e3, np.diag(rng.random(3)), rng.normal(size=3),
                      float("inf"), {1: 12.345678901234567, 7: float(rng.random() * 400)},
                      {1: (float(rng.uniform(-3, 3)), float(rng.uniform(-1.5, 1.5)), 0.017453292519943295),
-                      9: (-np.pi, np.pi / 2, 1e-3)}, _unit_quat(rng))
+                      9: (-np.pi, np.pi / 2, 1e-3)}, _unit_quat(rng), n_links=7)
 
 
 def _unit_quat(rng):
@@ -29,7 +29,7 @@ def test_state_float64_exact():
     s2 = M.msg_to_state(M.decode(M.StateMsg, M.state_to_msg(s).encode(), uav=3))
     assert np.array_equal(s.pos, s2.pos) and np.array_equal(s.pos_cov, s2.pos_cov) and np.array_equal(s.vel, s2.vel)
     assert s2.delta_m == float("inf") and s2.ranges == s.ranges and (s2.uav, s2.k, s2.r) == (3, 5, 2)
-    assert s2.bearings == s.bearings and np.array_equal(s2.quat, s.quat)
+    assert s2.bearings == s.bearings and np.array_equal(s2.quat, s.quat) and s2.n_links == 7
 
 
 def test_extreme_floats_exact():
@@ -171,7 +171,17 @@ def test_tdoa_input_round_trips_both_encodings():
     _same_input(inp, M.msgs_to_epoch_input(msgs))
 
 
+def test_tdoa_json_part_rejects():
+    good = M.epoch_input_to_msgs(_with_tdoa(_input(np.random.default_rng(13))), [1, 2, 3])["tdoa"].model_dump()
+    for field, value in (("rdiff", [1e6, 0.0]), ("listener", [0, 2]), ("sigma", [0.2, -1.0]), ("tag", [21])):
+        bad = dict(good, **{field: value})
+        with pytest.raises(M.WireError) as e:
+            M.decode(M.TdoaMsg, json.dumps(bad), uav=2)
+        assert e.value.reason == "invalid", field
+
+
 @pytest.mark.parametrize("field, value", [("tdoa_sigma", np.array([0.19, 0.0])), ("tdoa_init", np.array([-1, 3])),
+                                          ("tdoa_m", np.array([2e5, 0.0])),
                                           ("tdoa_listener", np.array([0, 2])),
                                           ("tdoa_m", np.array([np.inf, 0.0]))])
 def test_tdoa_input_rejects_values(field, value):
@@ -198,7 +208,8 @@ def test_input_frame_rejects(mutate, reason):
 def test_input_frame_rejects_values():
     rng = np.random.default_rng(7)
     for field, value, reason in (("accel", np.full((100, 3), np.nan), "invalid"), ("range_m", np.array([-1.0, 2.0]), "invalid"),
-                                 ("range_sigma", np.array([0.0, 1.0]), "invalid"), ("range_other", np.array([2, 3]), "invalid"),
+                                 ("range_sigma", np.array([0.0, 1.0]), "invalid"),
+                                 ("range_m", np.array([1e300, 2.0]), "invalid"), ("range_other", np.array([2, 3]), "invalid"),
                                  ("rel_target", np.array([2]), "invalid")):
         inp = _input(rng)
         setattr(inp, field, value)
@@ -220,7 +231,7 @@ def test_state_frame_exact():
     assert np.array_equal(s.pos, s2.pos) and np.array_equal(s.pos_cov, s2.pos_cov) and np.array_equal(s.vel, s2.vel)
     assert s2.delta_m == float("inf") and s2.ranges == s.ranges and list(s2.ranges) == sorted(s.ranges)
     assert s2.bearings == s.bearings and list(s2.bearings) == sorted(s.bearings)
-    assert np.array_equal(s2.quat, s.quat)
+    assert np.array_equal(s2.quat, s.quat) and s2.n_links == 7
     s.quat = None  # no attitude (e.g. fkf) travels as zeros and comes back as None
     assert M.decode_state(M.encode_state(s)).quat is None
     assert (s2.uav, s2.k, s2.r, s2.t) == (3, 5, 2, 5.0)
@@ -238,6 +249,10 @@ def test_state_frame_rejects():
     bad = _state(np.random.default_rng(9))
     bad.ranges = {1: -3.0}
     cases.append((M.encode_state(bad), "invalid"))
+    for n_links in (-1, 2.5):
+        bad = _state(np.random.default_rng(9))
+        bad.n_links = n_links
+        cases.append((M.encode_state(bad), "invalid"))
     for quat in (np.array([1.0, 0.1, 0.0, 0.0]), np.array([np.nan, 0.0, 0.0, 0.0])):
         bad = _state(np.random.default_rng(9))
         bad.quat = quat

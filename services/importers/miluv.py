@@ -640,7 +640,8 @@ def _import_passive(src: Path, robots, tag_owner: dict[int, int], nodes, anchors
     listener that is not a robot's tag or is one of the transaction's own tags, non-finite values,
     a clock-rate ratio beyond 1 ± PASSIVE_MAX_SKEW, and range differences that break the triangle
     inequality |d(R,L) − d(I,L)| <= d(I,R) by more than 3 σ. Time = the transaction's timestamp
-    (``timestamp_n``, the active range's, which the row overheard); σ = the row's ``std``.
+    (``timestamp_n``, the active range's, which the row overheard); σ = the row's ``std`` (the
+    recording's median range std where it is missing or not positive).
     """
     cols = ["my_id", "from_id", "to_id", "rx1", "rx2", "rx3", "rx1_n", "tx2_n", "tx3_n", "range_n", "std", "timestamp_n"]
     seen: dict[tuple[int, int, int, float], tuple[float, float, float, float]] = {}

@@ -63,6 +63,9 @@ class NodeState:
     # body FLU -> ENU attitude (w, x, y, z) of the sender, None = not given: receivers place the
     # sender's UWB tags (lever arms in meta) with it; constant over an epoch's rounds
     quat: np.ndarray | None = None
+    # round 0: the number of cooperative links the sender fuses this epoch (ranged neighbours +
+    # tdoa links; 0 = not given, receivers count ``ranges``) — the split-CI inflation of its state
+    n_links: int = 0
 
 
 @dataclass
@@ -139,4 +142,5 @@ class SwarmEstimator(abc.ABC):
     name: str = "central"
 
     @abc.abstractmethod
-    def step(self, inputs: dict[int, EpochInput], range_labels: dict[str, np.ndarray]) -> dict[int, NodeEstimate]: ...
+    def step(self, inputs: dict[int, EpochInput], range_labels: dict[str, np.ndarray],
+             tdoa_labels: dict[str, np.ndarray] | None = None) -> dict[int, NodeEstimate]: ...

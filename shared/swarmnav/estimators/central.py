@@ -9,8 +9,8 @@ bounded). Per UAV and epoch k: Pose3 X, velocity V, bias B; factors:
 - every UWB range of the epoch between two UAVs (``RangeFactorPose3``, or a lever-arm custom factor
   when the tags are not at the body origin) and to fixed anchors (``factors.range_to_point_factor``);
 - every relative azimuth/elevation of eq. 27 (``factors.azel_factor``; setting ``central_use_rel``);
-- every passive-listening range difference of the epoch (``factors.tdoa_factor``, from
-  ``EpochSlicer.tdoa_labels``; a dataset's optional ``tdoa`` table).
+- the epoch's passive-listening range differences whose tags are on live UAVs or anchors
+  (``factors.tdoa_factor``, from ``EpochSlicer.tdoa_labels``; a dataset's optional ``tdoa`` table).
 
 **Oracle**: it reads the truth fault labels (``EpochSlicer.range_labels``, ``tdoa_labels``) and
 drops every range or range difference that is labelled faulty: ``fault_kind != NONE`` **or** ``|fault_err| > meta.fault_threshold_m``
@@ -334,5 +334,7 @@ class CentralEstimator(SwarmEstimator):
                 else:
                     break
             else:
+                if all(key is None for key, _ in ends):
+                    continue  # every tag fixed: nothing to estimate
                 sig = float(lab["sigma"][i]) if lab["sigma"][i] > 0 else self.meta.uwb_sigma_m
                 g.add(tdoa_factor(ends, float(lab["rdiff"][i]), gtsam.noiseModel.Isotropic.Sigma(1, sig)))

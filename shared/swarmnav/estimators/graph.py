@@ -322,7 +322,7 @@ class GraphEstimator(NodeEstimator):
         self.delta_h = None
         self._last_state = NodeState(self.uav, inp.k, 0, inp.t, self.p.copy(), self._broadcast_cov(),
                                      self.vel.copy(), float("inf"), dict(self.my_ranges), self._own_bearings(inp),
-                                     self._quat())
+                                     self._quat(), len(self.my_ranges) + len(self._tdoa_rows(inp)[1]))
         return self._last_state
 
     def _drag_factor(self, g, n: int, inp: EpochInput):
@@ -435,10 +435,11 @@ class GraphEstimator(NodeEstimator):
         return ((int(inp.tdoa_listener[i]), int(inp.tdoa_tag[i])), (int(inp.tdoa_init[i]), int(inp.tdoa_tag_init[i])),
                 (int(inp.tdoa_resp[i]), int(inp.tdoa_tag_resp[i])))
 
-    def _tdoa_end(self, node: int, tag: int):
-        """(key, lever) of an own tag or (None, position) of an anchor's, for factors.tdoa_factor."""
+    def _tdoa_end(self, node: int, tag: int, key: int | None = None):
+        """(key, lever) of an own tag on pose ``key`` or (None, position) of an anchor's tag, for
+        factors.tdoa_factor."""
         if node == self.uav:
-            return X(self.n), self.tags.get(tag, np.zeros(3))
+            return key, self.tags.get(tag, np.zeros(3))
         return None, self.anchors[node] + np.asarray(self.meta.node(node).tags.get(tag, (0.0, 0.0, 0.0)), float)
 
     def _add_own_tdoa(self, g, key, inp: EpochInput):
@@ -446,7 +447,12 @@ class GraphEstimator(NodeEstimator):
         me = gtsam.noiseModel.mEstimator
         kern = {"huber": me.Huber, "cauchy": me.Cauchy, "tukey": me.Tukey, "gm": me.GemanMcClure}[self.anchor_kernel]
         for i in own:
-            ends = [self._tdoa_end(nd, tg) for nd, tg in self._tdoa_ends(inp, i)]
+            ends = [self._tdoa_end(nd, tg, key) for nd, tg in self._tdoa_ends(inp, i)]
+            if self.anchor_time_shift and self.__dict__.get("_tdoa_shift", True):
+                # taken at t_r < t: the own tags were at p(t) − v·(t − t_r); equivalently every
+                # anchor end moves by +v·(t − t_r) (as for anchor ranges)
+                dt = float(inp.t) - float(inp.tdoa_t[i])
+                ends = [(k, x) if k is not None else (k, x + dt * self._v_pred) for k, x in ends]
             sig = float(inp.tdoa_sigma[i]) if inp.tdoa_sigma[i] > 0 else self.uwb_sigma
             noise = gtsam.noiseModel.Robust.Create(kern.Create(self.anchor_kernel_k), gtsam.noiseModel.Isotropic.Sigma(1, sig))
             g.add(tdoa_factor(ends, float(inp.tdoa_m[i]), noise))
@@ -505,8 +511,8 @@ class GraphEstimator(NodeEstimator):
             self._last_state = NodeState(self.uav, s.k, r, s.t, s.pos, s.pos_cov, s.vel, 0.0)
             return self._last_state
         for j, s in peers.items():
-            if s.ranges:  # round-0 states carry the sender's ranges and bearings
-                self.peer_links[j] = len(s.ranges)
+            if s.ranges or s.n_links:  # round-0 states carry the sender's ranges, link count, bearings
+                self.peer_links[j] = max(len(s.ranges), int(s.n_links))
                 for o, d in s.ranges.items():
                     self.peer_ranges.setdefault((min(j, o), max(j, o)), float(d))
             if s.bearings and self.uav in s.bearings:
@@ -547,6 +553,8 @@ class GraphEstimator(NodeEstimator):
         for _ in range(self.gn_iters):
             H, gvec = self._normal_equations(p)
             dp = np.linalg.solve(H, gvec)
+            if not np.all(np.isfinite(dp)):
+                break  # a degenerate or corrupt link set: keep the last finite position
             p = p + dp
             if np.linalg.norm(dp) < 1e-4:
                 break
@@ -694,8 +702,9 @@ class GraphEstimator(NodeEstimator):
 
     def _infl(self, o: int) -> float:
         """Covariance inflation of neighbour o's broadcast (double-counting remedy): by default the
-        number of links o fused this epoch (its round-0 range count), as in split covariance
-        intersection — each of o's n links may carry information that is also in ours."""
+        number of links o fused this epoch (its round-0 link count: ranged neighbours + tdoa
+        links), as in split covariance intersection — each of o's n links may carry information
+        that is also in ours."""
         if self.cov_infl is not None:
             return self.cov_infl
         return float(max(1, self.peer_links.get(o, 1)))

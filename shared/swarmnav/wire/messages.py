@@ -33,6 +33,8 @@ from ..estimators.base import InitialState, LinkClass, LinkInfo, NodeEstimate, N
 
 SCHEMA_VERSION = 4  # 2: binary input/state frames (below); 3: states carry az/el bearings; 4: tdoa inputs
 
+# no UWB range or range difference is this long: larger (finite) values are hostile or corrupt
+MAX_UWB_M = 1e5
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 Pos = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -103,7 +105,7 @@ class UwbMsg(UavMsg):
     other: list[Annotated[int, Field(ge=0)]]
     tag_self: list[Annotated[int, Field(ge=0)]]
     tag_other: list[Annotated[int, Field(ge=0)]]
-    range_m: list[NonNeg]
+    range_m: list[Annotated[float, Field(ge=0, le=MAX_UWB_M, allow_inf_nan=False)]]
     sigma: list[Pos]
 
     @model_validator(mode="after")
@@ -138,7 +140,7 @@ class TdoaMsg(UavMsg):
     tag_init: list[Annotated[int, Field(ge=0)]]
     resp: list[Annotated[int, Field(ge=0)]]
     tag_resp: list[Annotated[int, Field(ge=0)]]
-    rdiff: list[Finite]
+    rdiff: list[Annotated[float, Field(ge=-MAX_UWB_M, le=MAX_UWB_M, allow_inf_nan=False)]]
     sigma: list[Pos]
 
     @model_validator(mode="after")
@@ -203,6 +205,7 @@ class StateMsg(UavMsg):
     # target id -> [azimuth rad, elevation rad, sigma rad] (round 0)
     bearings: dict[int, Annotated[list[Finite], Field(min_length=3, max_length=3)]] = Field(default_factory=dict)
     quat: Annotated[list[Finite], Field(min_length=4, max_length=4)] | None = None  # w, x, y, z body -> ENU
+    n_links: int = Field(0, ge=0, le=1_000_000)
 
     @field_validator("quat")
     @classmethod
@@ -339,7 +342,7 @@ def state_to_msg(s: NodeState) -> StateMsg:
     return StateMsg(uav=s.uav, k=s.k, r=s.r, t=float(s.t), pos=_f(s.pos), pos_cov=_f(s.pos_cov), vel=_f(s.vel),
                     delta_m=float(s.delta_m), ranges={int(o): float(d) for o, d in sorted(s.ranges.items())},
                     bearings={int(o): [float(x) for x in b] for o, b in sorted(s.bearings.items())},
-                    quat=None if s.quat is None else _f(s.quat))
+                    quat=None if s.quat is None else _f(s.quat), n_links=int(s.n_links))
 
 
 def msg_to_state(m: StateMsg) -> NodeState:
@@ -347,7 +350,7 @@ def msg_to_state(m: StateMsg) -> NodeState:
                      pos_cov=np.array(m.pos_cov, np.float64).reshape(3, 3), vel=np.array(m.vel, np.float64),
                      delta_m=m.delta_m, ranges={int(o): float(d) for o, d in sorted(m.ranges.items())},
                      bearings={int(o): (float(b[0]), float(b[1]), float(b[2])) for o, b in sorted(m.bearings.items())},
-                     quat=None if m.quat is None else np.array(m.quat, np.float64))
+                     quat=None if m.quat is None else np.array(m.quat, np.float64), n_links=m.n_links)
 
 
 def estimate_to_msg(e: NodeEstimate, **extra) -> EstimateMsg:
@@ -446,7 +449,7 @@ SENSOR_MSG: dict[str, type[UavMsg]] = {"imu": ImuMsg, "gnss": GnssMsg, "uwb": Uw
 #   >= 0, sigmas > 0, ids >= 0, no self-ranging or self-observation).
 # * ``uav/<id>/state`` (node -> peers, every round): ``b"SNS"`` + version byte, int32 LE
 #   uav, k, r, uint32 n (ranges), uint32 m (bearings), float64 LE [t, pos(3), pos_cov(9,
-#   row-major), vel(3), delta_m, reserved, quat(4: w, x, y, z; all zero = no attitude), range
+#   row-major), vel(3), delta_m, n_links, quat(4: w, x, y, z; all zero = no attitude), range
 #   values(n), bearings (az, el, sigma)(m)], int64 LE range peer ids(n), bearing target ids(m).
 #   Decoded straight into the core's NodeState.
 #
@@ -459,7 +462,7 @@ _STATE_MAGIC = b"SNS"
 _INPUT_MAGIC = b"SNI"
 _STATE_HDR = struct.Struct("<3sBiiiII")
 _INPUT_HDR = struct.Struct("<3sBI")
-_STATE_NF = 22  # t, pos 3, cov 9, vel 3, delta_m, reserved, quat 4, then n range values
+_STATE_NF = 22  # t, pos 3, cov 9, vel 3, delta_m, n_links, quat 4, then n range values
 
 
 def _check_magic(payload: bytes, magic: bytes, min_len: int) -> None:
@@ -479,7 +482,7 @@ def encode_state(s: NodeState) -> bytes:
     f[4:13] = np.asarray(s.pos_cov, np.float64).ravel()
     f[13:16] = np.asarray(s.vel, np.float64).ravel()
     f[16] = s.delta_m
-    f[17] = 0.0  # reserved
+    f[17] = float(s.n_links)
     f[18:22] = 0.0 if s.quat is None else np.asarray(s.quat, np.float64).ravel()
     f[_STATE_NF:_STATE_NF + n] = [s.ranges[o] for o in ids]
     f[_STATE_NF + n:] = np.asarray([s.bearings[o] for o in bids], np.float64).ravel()
@@ -504,15 +507,16 @@ def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = 
     if q.any() and abs(float(np.linalg.norm(q)) - 1.0) > 1e-6:
         raise WireError("invalid", "attitude quaternion not of unit norm")
     rng, bear = f[_STATE_NF:_STATE_NF + n], f[_STATE_NF + n:].reshape(m, 3)
-    if np.isnan(f[16]) or f[16] < 0 or (n + m and ids.min() < 0) or (n and rng.min() < 0):
-        raise WireError("invalid", "negative range/delta or id")
+    if (np.isnan(f[16]) or f[16] < 0 or (n + m and ids.min() < 0) or (n and rng.min() < 0)
+            or not (0 <= f[17] <= 1e6 and f[17] == int(f[17]))):
+        raise WireError("invalid", "negative range/delta/link count or id")
     if m and not ((np.abs(bear[:, 0]) <= np.pi).all() and (np.abs(bear[:, 1]) <= np.pi / 2).all()
                   and (bear[:, 2] > 0).all()):
         raise WireError("invalid", "bearing out of range (|az| <= pi, |el| <= pi/2, sigma > 0)")
     _check_scope(u, k, uav, min_k)
     return NodeState(uav=u, k=k, r=r, t=float(f[0]), pos=f[1:4].copy(), pos_cov=f[4:13].reshape(3, 3).copy(),
                      vel=f[13:16].copy(), delta_m=float(f[16]), ranges=dict(zip(ids[:n].tolist(), rng.tolist())),
-                     quat=q.copy() if q.any() else None,
+                     quat=q.copy() if q.any() else None, n_links=int(f[17]),
                      bearings={int(o): (float(b[0]), float(b[1]), float(b[2])) for o, b in zip(ids[n:].tolist(), bear)})
 
 
@@ -585,14 +589,15 @@ def decode_input(payload: bytes, *, uav: int | None = None, min_k: int | None = 
     for name, c in _INPUT_I:
         a[name] = i[p:p + n[c]]
         p += n[c]
-    if h.n_range and (a["range_m"].min() < 0 or a["range_sigma"].min() <= 0 or a["range_other"].min() < 0
+    if h.n_range and (a["range_m"].min() < 0 or a["range_m"].max() > MAX_UWB_M or a["range_sigma"].min() <= 0
+                      or a["range_other"].min() < 0
                       or a["range_tag_self"].min() < 0 or a["range_tag_other"].min() < 0):
-        raise WireError("invalid", "negative range, sigma or id")
+        raise WireError("invalid", f"negative or > {MAX_UWB_M:g} m range, sigma <= 0 or negative id")
     if h.n_rel and (a["rel_sigma"].min() <= 0 or a["rel_target"].min() < 1):
         raise WireError("invalid", "non-positive sigma or bad target id")
-    if h.n_tdoa and (a["tdoa_sigma"].min() <= 0 or a["tdoa_listener"].min() < 1
+    if h.n_tdoa and (a["tdoa_sigma"].min() <= 0 or a["tdoa_listener"].min() < 1 or np.abs(a["tdoa_m"]).max() > MAX_UWB_M
                      or min(a[c].min() for c in ("tdoa_tag", "tdoa_init", "tdoa_tag_init", "tdoa_resp", "tdoa_tag_resp")) < 0):
-        raise WireError("invalid", "non-positive tdoa sigma or bad id")
+        raise WireError("invalid", f"tdoa: |rdiff| > {MAX_UWB_M:g} m, sigma <= 0 or bad id")
     if (a["range_other"] == h.uav).any() or (a["rel_target"] == h.uav).any():
         raise WireError("invalid", "a UAV cannot range to or observe itself")
     inp = EpochInput(uav=h.uav, k=h.k, t=h.t, t_prev=h.t_prev, imu_t=a["imu_t"], gyro=a["gyro"], accel=a["accel"],
