@@ -230,6 +230,26 @@ def test_passive_range_difference_by_hand(converted):
         assert np.any(np.isclose(inp.tdoa_m, by_hand, atol=1e-9)), u
 
 
+def test_heldout_cross_validation(converted):
+    """The truth-free cross-validation behind the drag σ default (`swarmnav calibrate --dataset`):
+    every anchor range of the span is held out exactly once and scored; on the first 20 s."""
+    import dataclasses
+
+    from swarmnav.calibration import heldout_anchor_cv
+    from swarmnav.estimators.registry import settings_for_dataset
+
+    ds, _ = converted
+    short = dataclasses.replace(ds, meta=ds.meta.model_copy(update={"duration_s": 20.0}))
+    r = ds.table("ranges")
+    n_anchor = int(((r["b"] >= 100) & (r["t"] <= short.meta.epoch_time(short.meta.n_epochs()))).sum())
+    res = heldout_anchor_cv(short, 0, settings_for_dataset(short.meta),
+                            [{"drag_sigma_scale": 1.0}, {"drag_sigma_scale": 3.0}], folds=2)
+    assert [c["settings"] for c in res] == [{"drag_sigma_scale": 1.0}, {"drag_sigma_scale": 3.0}]
+    assert [c["n"] for c in res] == [n_anchor, n_anchor] and n_anchor > 20
+    assert all(0.05 < c["median_abs_m"] <= c["rms_m"] * 3 < 30 for c in res)
+    assert res[0]["rms_m"] != res[1]["rms_m"]  # the candidate setting reaches the estimator
+
+
 def test_write_read_deterministic(converted, tmp_path):
     ds, _ = converted
     ds.write(tmp_path / "a")

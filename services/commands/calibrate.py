@@ -6,22 +6,34 @@ import json
 import time
 from pathlib import Path
 
-HELP = "train the lower detection threshold Δl on fault-free data (writes configs/delta_l.json)"
+HELP = "train Δl on fault-free simulated data, or cross-validate settings on a recording (no truth)"
 
 DESCRIPTION = """\
-Simulate the given (fault-free) scenario, run the distributed `fg` estimator with 50 message
-iterations per epoch over a window of epochs, and write Δl = the 99th percentile of the converged
-range residuals |d_ij - |p_i - p_j|| as JSON (key "delta_l_m"). `atvfg` reads it through
+--config: simulate the given (fault-free) scenario, run the distributed `fg` estimator with 50
+message iterations per epoch over a window of epochs, and write Δl = the 99th percentile of the
+converged range residuals |d_ij - |p_i - p_j|| as JSON (key "delta_l_m"). `atvfg` reads it through
 `estimation.delta_l_file`; without it Δl = estimation.delta_l_fallback_sigmas × UWB sigma.
 
-example:
+--dataset: truth-free K-fold cross-validation on a recording with fixed anchors: every K-th anchor
+range is held out, `fg` runs on the rest with each candidate rotor-drag σ scale
+(`drag_sigma_scale`), and the held-out ranges are predicted from the estimates. Prints RMS and
+median prediction error per candidate (lower = the better model of the data) and writes them as
+JSON with --out. This is how the default drag σ scale was chosen (docs/miluv.md, "Fifth pass").
+
+examples:
   swarmnav calibrate --config configs/paper_faultfree.toml --out configs/delta_l.json
+  swarmnav calibrate --dataset runs/miluv --drag-sigma-scales 1,1.5,2,3
 """
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--config", required=True, metavar="FILE", help="fault-free scenario TOML (e.g. configs/paper_faultfree.toml)")
-    p.add_argument("--out", required=True, metavar="FILE", help="JSON file to write (e.g. configs/delta_l.json)")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--config", metavar="FILE", help="fault-free scenario TOML (e.g. configs/paper_faultfree.toml): train Δl")
+    src.add_argument("--dataset", metavar="DIR", help="recorded dataset with anchors: cross-validate --drag-sigma-scales")
+    p.add_argument("--out", metavar="FILE", help="JSON file to write (required with --config, e.g. configs/delta_l.json)")
+    p.add_argument("--drag-sigma-scales", default="1,1.5,2,3", metavar="LIST",
+                   help="--dataset: comma-separated drag_sigma_scale candidates (default 1,1.5,2,3)")
+    p.add_argument("--folds", type=int, default=4, help="--dataset: number of folds (default 4)")
     p.add_argument("--seed", type=int, default=None, metavar="N", help="seed (default: the config's)")
     p.add_argument("--warmup-s", type=float, default=20.0, help="seconds skipped before collecting residuals")
     p.add_argument("--window-s", type=float, default=60.0, help="seconds of residuals collected")
@@ -33,6 +45,10 @@ def run(args) -> int:
     from swarmnav.errors import ConfigError
     from swarmnav.sim import simulate
 
+    if args.dataset:
+        return _cross_validate(args)
+    if not args.out:
+        raise ConfigError("--config needs --out FILE (where to write Δl, e.g. configs/delta_l.json)")
     t0 = time.perf_counter()
     sc = load_config(args.config)
     seed = sc.scenario.seed if args.seed is None else args.seed
@@ -54,4 +70,50 @@ def run(args) -> int:
     Path(args.out).write_text(json.dumps(out, indent=1, sort_keys=True) + "\n")
     print(f"Δl = {out['delta_l_m']:.3f} m from {out['n_residuals']} residuals "
           f"({time.perf_counter() - t0:.1f} s) -> {args.out}")
+    return 0
+
+
+def _cross_validate(args) -> int:
+    from swarmnav.calibration import heldout_anchor_cv
+    from swarmnav.dataset import Dataset
+    from swarmnav.errors import ConfigError
+    from swarmnav.estimators.registry import settings_for_dataset
+
+    t0 = time.perf_counter()
+    try:
+        scales = [float(x) for x in args.drag_sigma_scales.split(",") if x.strip()]
+    except ValueError:
+        raise ConfigError(f"--drag-sigma-scales {args.drag_sigma_scales!r}: expected numbers like 1,1.5,2") from None
+    if not scales or any(x <= 0 for x in scales):
+        raise ConfigError(f"--drag-sigma-scales {args.drag_sigma_scales!r}: give one or more positive numbers")
+    if args.folds < 2:
+        raise ConfigError(f"--folds {args.folds}: at least 2")
+    ds = Dataset.read(args.dataset)
+    if not ds.meta.anchors():
+        raise ConfigError(f"{args.dataset}: no anchors — the cross-validation predicts held-out anchor ranges")
+    seed = ds.meta.seed or 0
+    n = len(scales) * args.folds
+
+    def progress(i, total):
+        print(f"\r  run {i}/{total} ({time.perf_counter() - t0:.0f} s)", end="", flush=True)
+
+    try:
+        res = heldout_anchor_cv(ds, seed, settings_for_dataset(ds.meta), [{"drag_sigma_scale": x} for x in scales],
+                                args.folds, progress=progress)
+    except ValueError as e:
+        raise ConfigError(f"{args.dataset}: {e}") from None
+    print()
+    print(f"{'drag_sigma_scale':>16}  {'held-out RMS [m]':>16}  {'median |e| [m]':>14}  {'n':>5}")
+    for r in res:
+        print(f"{r['settings']['drag_sigma_scale']:>16g}  {r['rms_m']:>16.3f}  {r['median_abs_m']:>14.3f}  {r['n']:>5d}")
+    best = min(res, key=lambda r: r["rms_m"])
+    print(f"lowest held-out RMS: drag_sigma_scale = {best['settings']['drag_sigma_scale']:g} "
+          f"({n} fg runs, {time.perf_counter() - t0:.0f} s)")
+    if args.out:
+        out = {"schema": "swarmnav.cv/1", "dataset": ds.meta.name, "algo": "fg", "folds": args.folds, "seed": seed,
+               "score": "held-out anchor-range prediction error (truth-free)", "candidates": res,
+               "best": best["settings"]}
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(out, indent=1, sort_keys=True) + "\n")
+        print(f"-> {args.out}")
     return 0

@@ -1,4 +1,5 @@
-"""Offline training of the lower detection threshold Δl (paper §2.3.2 step 3) — pure, no I/O.
+"""Offline calibration — pure, no I/O: the lower detection threshold Δl (paper §2.3.2 step 3)
+and, for recorded data without truth, a held-out-range cross-validation of estimator settings.
 
 Procedure (documented statistic): run the distributed ``fg`` estimator (every link Gaussian, no
 detection) on *fault-free* data with **50 message-iteration rounds** per epoch (no early stop), over
@@ -12,7 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 
+import dataclasses
+
 from .dataset import Dataset, EpochSlicer
+from .geometry import quat_to_matrix
 from .initial import initial_states
 
 PERCENTILE = 99.0
@@ -65,3 +69,55 @@ def train_delta_l(ds: Dataset, seed: int, settings: dict, warmup_s: float = 20.0
         "seed": seed,
         "uwb_sigma_m": float(meta.uwb_sigma_m),
     }
+
+
+def heldout_anchor_cv(ds: Dataset, seed: int, settings: dict, candidates: list[dict], folds: int = 4,
+                      algo: str = "fg", progress=None) -> list[dict]:
+    """Truth-free cross-validation of estimator settings on a recording with fixed anchors.
+
+    For each fold f of ``folds``, every ``folds``-th range to an anchor (offset f, in time order)
+    is removed from the dataset; ``algo`` runs on the rest with ``settings`` updated by each
+    candidate; each held-out range is predicted from the estimate of its epoch (tag at
+    pos + R·lever, the anchor's tag position) and scored by its error. Returns, per candidate, the
+    RMS and median |error| over all folds (m) and the count — lower is a better model of the data,
+    and no truth is used. ``progress(i, n)`` is called after each run.
+    """
+    from .evaluation import run_algorithm
+
+    meta = ds.meta
+    anchors = meta.anchors()
+    r = ds.table("ranges")
+    t_end = meta.epoch_time(meta.n_epochs())
+    idx = np.flatnonzero(np.isin(r["b"], list(anchors)) & np.isin(r["a"], meta.uav_ids())
+                         & (r["t"] > meta.t_start) & (r["t"] <= t_end))
+    if len(idx) < folds:
+        raise ValueError(f"{len(idx)} anchor ranges: too few for {folds}-fold cross-validation")
+    uavs = meta.uav_ids()
+    out = []
+    n_runs, done = len(candidates) * folds, 0
+    for cand in candidates:
+        errs = []
+        for f in range(folds):
+            held = np.zeros(len(r["t"]), bool)
+            held[idx[f::folds]] = True
+            part = dataclasses.replace(ds, tables={**ds.tables, "ranges": {c: v[~held] for c, v in r.items()}})
+            st = dict(settings)
+            st.update(cand)
+            res = run_algorithm(part, algo, seed, st)
+            for i in np.flatnonzero(held):
+                k = int(np.ceil((r["t"][i] - meta.t_start) / meta.epoch_dt_s - 1e-9))
+                j = uavs.index(int(r["a"][i]))
+                q, p = res.quat[k - 1, j], res.pos[k - 1, j]
+                if not (np.all(np.isfinite(q)) and np.all(np.isfinite(p))):
+                    continue
+                tag = p + quat_to_matrix(q) @ np.asarray(meta.node(int(r["a"][i])).tags.get(int(r["tag_a"][i]), (0.0, 0.0, 0.0)))
+                b = int(r["b"][i])
+                anchor = anchors[b] + np.asarray(meta.node(b).tags.get(int(r["tag_b"][i]), (0.0, 0.0, 0.0)))
+                errs.append(float(np.linalg.norm(tag - anchor) - r["range"][i]))
+            done += 1
+            if progress:
+                progress(done, n_runs)
+        e = np.array(errs)
+        out.append({"settings": dict(cand), "rms_m": float(np.sqrt(np.mean(e ** 2))) if len(e) else float("nan"),
+                    "median_abs_m": float(np.median(np.abs(e))) if len(e) else float("nan"), "n": int(len(e))})
+    return out

@@ -27,7 +27,7 @@ import numpy as np
 
 from ..dataset import DatasetMeta, EpochInput, FaultKind
 from .base import InitialState, NodeEstimate, SwarmEstimator, tuned_settings
-from .factors import rotor_drag_factor, rotor_drag_prior
+from .factors import DRAG_SIGMA_SCALE, rotor_drag_factor, rotor_drag_prior
 from .imu import mean_specific_force, preintegrate, preintegration_params
 
 
@@ -178,7 +178,7 @@ class CentralEstimator(SwarmEstimator):
                      and getattr(meta.node(u), "airframe", None) == "multirotor"}
         self.drag_mu0 = float(s.get("drag_mu_prior", 0.5))
         self.drag_mu_sigma = float(s.get("drag_mu_prior_sigma", 0.5))
-        self.drag_sigma_scale = float(s.get("drag_sigma_scale", 1.0))
+        self.drag_sigma_scale = float(s.get("drag_sigma_scale", DRAG_SIGMA_SCALE))
         self._drag_started: set[int] = set()
         rest = float(s.get("rest_max_speed_mps", 0.1))  # graph.py's initial-rest test
         self._rest0 = {u: float(inits[u].vel_sigma) <= rest and float(np.linalg.norm(inits[u].vel)) <= rest

@@ -79,7 +79,8 @@ from ..calibration import fallback_delta_l
 from ..dataset import DatasetMeta, EpochInput
 from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState, tuned_settings
 from . import detection as det
-from .factors import rotor_drag_factor, rotor_drag_prior, stacked_range_factor, tdoa_factor, tdoa_h, wrap_angle
+from .factors import (DRAG_SIGMA_SCALE, rotor_drag_factor, rotor_drag_prior, stacked_range_factor, tdoa_factor,
+                      tdoa_h, wrap_angle)
 from .imu import mean_specific_force, preintegrate, preintegration_params
 
 __all__ = ["AtvfgEstimator", "FgEstimator", "InsEstimator", "GraphEstimator", "link_sigma"]
@@ -202,7 +203,7 @@ class GraphEstimator(NodeEstimator):
         self.drag = bool(s.get("rotor_drag", True)) and getattr(meta.node(uav), "airframe", None) == "multirotor"
         self.drag_mu0 = float(s.get("drag_mu_prior", 0.5))
         self.drag_mu_sigma = float(s.get("drag_mu_prior_sigma", 0.5))
-        self.drag_sigma_scale = float(s.get("drag_sigma_scale", 1.0))
+        self.drag_sigma_scale = float(s.get("drag_sigma_scale", DRAG_SIGMA_SCALE))
         self._drag_new = self.drag
         # robust kernel of the known-anchor ranges (whitened threshold k)
         self.anchor_kernel = str(s.get("anchor_kernel", "huber"))
@@ -335,7 +336,8 @@ class GraphEstimator(NodeEstimator):
         alone — the model behind multicopter drag fusion in PX4's EKF2 (Leishman et al. 2014,
         "Quadrotors and accelerometers"). Residual μ(Rᵀv)_xy + (f̄ − b_a)_xy − c over the epoch's
         mean specific force f̄, σ = accel_noise_density / √Δt (the epoch mean of the IMU's white
-        noise; on MILUV the importer's in-flight vibration density) × ``drag_sigma_scale``.
+        noise; on MILUV the importer's in-flight vibration density) × ``drag_sigma_scale``
+        (default ``factors.DRAG_SIGMA_SCALE`` = 1.5: the model's own error, cross-validated).
         M is estimated online: μ prior ``drag_mu_prior`` ± ``drag_mu_prior_sigma`` (0.5 ± 0.5 1/s,
         loose); c prior = the first epoch's f̄_xy ± 0.1 m/s² when the node starts at rest (standing
         on its landing gear the rotor axis is the floor normal), else 0 ± 0.5. The factor is off
