@@ -250,6 +250,24 @@ def test_heldout_cross_validation(converted):
     assert res[0]["rms_m"] != res[1]["rms_m"]  # the candidate setting reaches the estimator
 
 
+def test_calibrate_dataset_cli(converted, tmp_path, capsys):
+    """`swarmnav calibrate --dataset DIR --grid KEY=...`: a table and JSON; a bad grid is a clear error."""
+    import dataclasses
+    import json
+
+    from services.cli import main
+
+    ds, _ = converted
+    dataclasses.replace(ds, meta=ds.meta.model_copy(update={"duration_s": 10.0})).write(tmp_path / "ds")
+    assert main(["calibrate", "--dataset", str(tmp_path / "ds"), "--grid", "drag_sigma_scale=1,3", "--folds", "2",
+                 "--out", str(tmp_path / "cv.json")]) == 0
+    out = json.loads((tmp_path / "cv.json").read_text())
+    assert [c["settings"] for c in out["candidates"]] == [{"drag_sigma_scale": 1.0}, {"drag_sigma_scale": 3.0}]
+    assert out["best"] in [c["settings"] for c in out["candidates"]] and "lowest held-out RMS" in capsys.readouterr().out
+    assert main(["calibrate", "--dataset", str(tmp_path / "ds"), "--grid", "drag_sigma_scale"]) != 0
+    assert "expected KEY=V1,V2" in capsys.readouterr().err
+
+
 def test_write_read_deterministic(converted, tmp_path):
     ds, _ = converted
     ds.write(tmp_path / "a")

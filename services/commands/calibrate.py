@@ -14,25 +14,26 @@ message iterations per epoch over a window of epochs, and write Δl = the 99th p
 converged range residuals |d_ij - |p_i - p_j|| as JSON (key "delta_l_m"). `atvfg` reads it through
 `estimation.delta_l_file`; without it Δl = estimation.delta_l_fallback_sigmas × UWB sigma.
 
---dataset: truth-free K-fold cross-validation on a recording with fixed anchors: every K-th anchor
-range is held out, `fg` runs on the rest with each candidate rotor-drag σ scale
-(`drag_sigma_scale`), and the held-out ranges are predicted from the estimates. Prints RMS and
-median prediction error per candidate (lower = the better model of the data) and writes them as
-JSON with --out. This is how the default drag σ scale was chosen (docs/miluv.md, "Fifth pass").
+--dataset: truth-free K-fold cross-validation of one estimator setting on a recording with fixed
+anchors: every K-th anchor range is held out, `fg` runs on the rest with each candidate value
+(--grid KEY=V1,V2,..., a graph.py settings key), and the held-out ranges are predicted from the
+estimates. Prints RMS and median prediction error per candidate (lower = the better model of the
+data) and writes them as JSON with --out. This is how the defaults of drag_sigma_scale and
+commit_weight were chosen for sparse real data (docs/miluv.md, "Fifth pass").
 
 examples:
   swarmnav calibrate --config configs/paper_faultfree.toml --out configs/delta_l.json
-  swarmnav calibrate --dataset runs/miluv --drag-sigma-scales 1,1.5,2,3
+  swarmnav calibrate --dataset runs/miluv --grid drag_sigma_scale=1,1.5,2,3
 """
 
 
 def add_arguments(p) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--config", metavar="FILE", help="fault-free scenario TOML (e.g. configs/paper_faultfree.toml): train Δl")
-    src.add_argument("--dataset", metavar="DIR", help="recorded dataset with anchors: cross-validate --drag-sigma-scales")
+    src.add_argument("--dataset", metavar="DIR", help="recorded dataset with anchors: cross-validate the --grid setting")
     p.add_argument("--out", metavar="FILE", help="JSON file to write (required with --config, e.g. configs/delta_l.json)")
-    p.add_argument("--drag-sigma-scales", default="1,1.5,2,3", metavar="LIST",
-                   help="--dataset: comma-separated drag_sigma_scale candidates (default 1,1.5,2,3)")
+    p.add_argument("--grid", default="drag_sigma_scale=1,1.5,2,3", metavar="KEY=V1,V2",
+                   help="--dataset: the setting and its candidate values (default drag_sigma_scale=1,1.5,2,3)")
     p.add_argument("--folds", type=int, default=4, help="--dataset: number of folds (default 4)")
     p.add_argument("--seed", type=int, default=None, metavar="N", help="seed (default: the config's)")
     p.add_argument("--warmup-s", type=float, default=20.0, help="seconds skipped before collecting residuals")
@@ -80,35 +81,40 @@ def _cross_validate(args) -> int:
     from swarmnav.estimators.registry import settings_for_dataset
 
     t0 = time.perf_counter()
+    key, _, vals = args.grid.partition("=")
+    key = key.strip()
     try:
-        scales = [float(x) for x in args.drag_sigma_scales.split(",") if x.strip()]
+        values = [float(x) for x in vals.split(",") if x.strip()]
     except ValueError:
-        raise ConfigError(f"--drag-sigma-scales {args.drag_sigma_scales!r}: expected numbers like 1,1.5,2") from None
-    if not scales or any(x <= 0 for x in scales):
-        raise ConfigError(f"--drag-sigma-scales {args.drag_sigma_scales!r}: give one or more positive numbers")
+        values = []
+    if not key or not values or any(x < 0 for x in values):
+        raise ConfigError(f"--grid {args.grid!r}: expected KEY=V1,V2,... with numbers >= 0, "
+                          "e.g. drag_sigma_scale=1,1.5,2")
     if args.folds < 2:
         raise ConfigError(f"--folds {args.folds}: at least 2")
     ds = Dataset.read(args.dataset)
     if not ds.meta.anchors():
         raise ConfigError(f"{args.dataset}: no anchors — the cross-validation predicts held-out anchor ranges")
     seed = ds.meta.seed or 0
-    n = len(scales) * args.folds
+    n = len(values) * args.folds
 
     def progress(i, total):
         print(f"\r  run {i}/{total} ({time.perf_counter() - t0:.0f} s)", end="", flush=True)
 
     try:
-        res = heldout_anchor_cv(ds, seed, settings_for_dataset(ds.meta), [{"drag_sigma_scale": x} for x in scales],
+        res = heldout_anchor_cv(ds, seed, settings_for_dataset(ds.meta), [{key: x} for x in values],
                                 args.folds, progress=progress)
     except ValueError as e:
         raise ConfigError(f"{args.dataset}: {e}") from None
     print()
-    print(f"{'drag_sigma_scale':>16}  {'held-out RMS [m]':>16}  {'median |e| [m]':>14}  {'n':>5}")
+    print(f"{key:>16}  {'held-out RMS [m]':>16}  {'median |e| [m]':>14}  {'n':>5}")
     for r in res:
-        print(f"{r['settings']['drag_sigma_scale']:>16g}  {r['rms_m']:>16.3f}  {r['median_abs_m']:>14.3f}  {r['n']:>5d}")
+        print(f"{r['settings'][key]:>16g}  {r['rms_m']:>16.3f}  {r['median_abs_m']:>14.3f}  {r['n']:>5d}")
+    if len({r["rms_m"] for r in res}) == 1 and len(res) > 1:
+        print(f"swarmnav calibrate: warning: every {key} value gave the same result — is {key!r} a graph "
+              "estimator settings key (docs/estimators.md)?")
     best = min(res, key=lambda r: r["rms_m"])
-    print(f"lowest held-out RMS: drag_sigma_scale = {best['settings']['drag_sigma_scale']:g} "
-          f"({n} fg runs, {time.perf_counter() - t0:.0f} s)")
+    print(f"lowest held-out RMS: {key} = {best['settings'][key]:g} ({n} fg runs, {time.perf_counter() - t0:.0f} s)")
     if args.out:
         out = {"schema": "swarmnav.cv/1", "dataset": ds.meta.name, "algo": "fg", "folds": args.folds, "seed": seed,
                "score": "held-out anchor-range prediction error (truth-free)", "candidates": res,

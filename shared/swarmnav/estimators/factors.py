@@ -275,7 +275,8 @@ def whitened_cost(residuals: Sequence[float], sigmas: Sequence[float], weights: 
 # σ of the rotor-drag factor = this × the epoch mean of the accelerometer's white noise
 # (accel_noise_density/√Δt): the drag model has its own error (unmodelled aerodynamics, IMU lever
 # arm, time correlation). 1.5 = the lowest held-out anchor-range error of a truth-free 4-fold
-# cross-validation over {1, 1.5, 2, 3} on MILUV (`swarmnav calibrate --dataset`, docs/miluv.md)
+# cross-validation over {1, 1.5, 2, 3} on MILUV (`swarmnav calibrate --dataset DS --grid
+# drag_sigma_scale=1,1.5,2,3`, docs/miluv.md "Fifth pass")
 DRAG_SIGMA_SCALE = 1.5
 
 
