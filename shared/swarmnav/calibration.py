@@ -102,7 +102,8 @@ def heldout_anchor_cv(ds: Dataset, seed: int, settings: dict, candidates: list[d
             held[idx[f::folds]] = True
             part = dataclasses.replace(ds, tables={**ds.tables, "ranges": {c: v[~held] for c, v in r.items()}})
             st = dict(settings)
-            st.update(cand)
+            st.update(cand)  # and over the [estimation.graph] overrides, which win in tuned_settings
+            st["graph"] = {**(st.get("graph") or {}), **cand}
             res = run_algorithm(part, algo, seed, st)
             for i in np.flatnonzero(held):
                 k = int(np.ceil((r["t"][i] - meta.t_start) / meta.epoch_dt_s - 1e-9))
