@@ -9,7 +9,7 @@ from gtsam.symbol_shorthand import X
 
 from swarmnav.config import load_config, parse_config
 from swarmnav.dataset import EpochSlicer
-from swarmnav.estimators.base import LinkClass
+from swarmnav.estimators.base import LinkClass, NodeState
 from swarmnav.estimators.graph import AtvfgEstimator, FgEstimator, InsEstimator
 from swarmnav.initial import initial_states
 from swarmnav.protocol import node_epoch, run_epoch_in_process
@@ -187,6 +187,32 @@ def test_bootstrap_moves_gnss_fix_back_to_restart_time():
     want = np.asarray(inp.gnss_pos) - np.asarray(inp.gnss_vel) * (inp.t - inp.t_prev)
     assert np.allclose(est.pose.translation(), want, atol=1e-9)
     assert est.t == inp.t_prev
+
+
+def test_bootstrap_without_gnss_uses_anchors_and_altimeter(noiseless):
+    """No GNSS at the restart: exact ranges to 2 peers and 2 anchors multilaterate the position; with
+    fewer ranges the node starts at the peers' centroid at the altimeter's height."""
+    from swarmnav.dataset import EpochInput
+
+    sc, ds = noiseless
+    ds = _with_anchor_tdoa(ds)  # adds anchors 100, 101
+    u = ds.meta.uav_ids()[0]
+    est = FgEstimator(u, ds.meta, _settings(sc), initial_states(ds, 3)[u])
+    true = np.array([10.0, -20.0, 50.0])
+    anchors = est.anchors
+    peers = {j: NodeState(j, 5, 0, 5.0, true + off, np.eye(3), np.zeros(3))
+             for j, off in ((2, np.array([30.0, 5.0, 2.0])), (3, np.array([-8.0, 25.0, -4.0])))}
+    pts = {**{j: s.pos for j, s in peers.items()}, **anchors}
+    others = np.array(sorted(pts))
+    inp = EpochInput(u, 6, 6.0, 5.0, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), range_t=np.full(4, 6.0),
+                     range_other=others, range_tag_self=np.zeros(4, int), range_tag_other=np.zeros(4, int),
+                     range_m=np.array([np.linalg.norm(true - pts[o]) for o in others]), range_sigma=np.full(4, 0.1))
+    est.bootstrap(5.0, peers, inp)
+    assert np.linalg.norm(est.pose.translation() - true) < 1e-3
+    inp2 = EpochInput(u, 6, 6.0, 5.0, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), altitude=49.0, altitude_sigma=0.1)
+    est.bootstrap(5.0, peers, inp2)
+    centroid = np.mean([s.pos for s in peers.values()], axis=0)
+    assert np.allclose(est.pose.translation(), [centroid[0], centroid[1], 49.0])
 
 
 def test_initial_rest_detector_ends_on_smooth_acceleration():

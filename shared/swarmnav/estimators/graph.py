@@ -804,8 +804,9 @@ class GraphEstimator(NodeEstimator):
 
     def bootstrap(self, t: float, peers: dict[int, NodeState], inp: EpochInput | None) -> None:
         """Re-initialise a restarted node at time ``t``: position from GNSS if present (the fix of
-        ``inp.t`` moved back to ``t`` along the GNSS velocity), else a
-        multilateration on the peers' states with this epoch's ranges (else the peers' centroid);
+        ``inp.t`` moved back to ``t`` along the GNSS velocity), else a multilateration on the
+        peers' states and the anchors with this epoch's ranges (else the peers' centroid, or the
+        anchors' without peers, at the altimeter's height when there is one);
         velocity from GNSS or the peers' mean; attitude level with yaw along the velocity (a
         coarse alignment: roll/pitch σ 0.5°, yaw σ 10°)."""
         pos_sigma = np.array([10.0, 10.0, 10.0])
@@ -818,15 +819,20 @@ class GraphEstimator(NodeEstimator):
             dt = float(inp.t) - float(t)
             if dt > 0 and inp.gnss_vel is not None:
                 pos = pos - np.asarray(inp.gnss_vel, float) * dt
-        elif peers:
-            pos = np.mean([s.pos for s in peers.values()], axis=0)
+        elif peers or self.anchors:
+            # no GNSS: the peers' centroid (else the anchors'), height from the altimeter, then a
+            # multilateration on this epoch's ranges to peers and anchors when there are >= 4
+            pos = np.mean([s.pos for s in peers.values()] if peers else list(self.anchors.values()), axis=0)
+            if inp is not None and inp.altitude is not None and np.isfinite(inp.altitude):
+                pos[2] = float(inp.altitude)
             if inp is not None:
-                rows = [(int(o), float(d)) for o, d in zip(inp.range_other, inp.range_m) if int(o) in peers]
+                pts = {**{o: s.pos for o, s in peers.items()}, **self.anchors}
+                rows = [(pts[int(o)], float(d)) for o, d in zip(inp.range_other, inp.range_m) if int(o) in pts]
                 if len(rows) >= 4:
                     for _ in range(10):
                         A, b = [], []
-                        for o, d in rows:
-                            dv = pos - peers[o].pos
+                        for pt, d in rows:
+                            dv = pos - pt
                             rr = max(np.linalg.norm(dv), 1e-6)
                             A.append(dv / rr)
                             b.append(d - rr)
