@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from swarmnav.dataset import (Dataset, DatasetMeta, Earth, FaultKind, ImuNoise, Node, TABLE_COLUMNS)
+from swarmnav.dataset import (Dataset, DatasetMeta, Earth, FaultKind, ImuNoise, Node, TABLE_COLUMNS, epoch_of)
 from swarmnav.errors import DatasetError
 
 ANCHOR_NODE_OFFSET = 100  # anchor k -> node id 100 + k (UAVs are 1..9)
@@ -530,7 +530,7 @@ def convert(src: str | Path, epoch_dt: float = 0.1) -> tuple[Dataset, dict]:
     }
     # motion inside the epoch: change of the true range between the range's time and its epoch end
     if len(R):
-        k = np.ceil((R[:, 0] - t_start) / epoch_dt - 1e-9).astype(int)
+        k = epoch_of(R[:, 0], t_start, epoch_dt)
         t_ep = t_start + k * epoch_dt
         d_now = _true_range(truth_fn, anchors, nodes, ranges_tab, R[:, 0])
         d_ep = _true_range(truth_fn, anchors, nodes, ranges_tab, t_ep)

@@ -15,7 +15,7 @@ import numpy as np
 
 import dataclasses
 
-from .dataset import Dataset, EpochSlicer
+from .dataset import Dataset, EpochSlicer, epoch_of
 from .geometry import quat_to_matrix
 from .initial import initial_states
 
@@ -106,7 +106,7 @@ def heldout_anchor_cv(ds: Dataset, seed: int, settings: dict, candidates: list[d
             st["graph"] = {**(st.get("graph") or {}), **cand}
             res = run_algorithm(part, algo, seed, st)
             for i in np.flatnonzero(held):
-                k = int(np.ceil((r["t"][i] - meta.t_start) / meta.epoch_dt_s - 1e-9))
+                k = epoch_of(r["t"][i], meta.t_start, meta.epoch_dt_s)
                 j = uavs.index(int(r["a"][i]))
                 q, p = res.quat[k - 1, j], res.pos[k - 1, j]
                 if not (np.all(np.isfinite(q)) and np.all(np.isfinite(p))):

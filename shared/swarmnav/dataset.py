@@ -174,6 +174,12 @@ class DatasetMeta(_M):
 Table = dict[str, np.ndarray]
 
 
+def epoch_of(t, t_start: float, epoch_dt: float):
+    """Epoch k whose interval (t_{k-1}, t_k] holds time t (array or scalar; int)."""
+    k = np.ceil((np.asarray(t, float) - t_start) / epoch_dt - 1e-9).astype(int)
+    return int(k) if k.ndim == 0 else k
+
+
 @dataclass
 class Dataset:
     meta: DatasetMeta

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .dataset import Dataset, EpochSlicer
+from .dataset import Dataset, EpochSlicer, epoch_of
 from .estimators import registry
 from .estimators.base import NodeEstimate
 from .initial import initial_states
@@ -169,8 +169,7 @@ def link_labels(ds: Dataset) -> np.ndarray:
     if len(r["t"]) == 0:
         return np.zeros(0, dt)
     # epoch k covers (t_{k-1}, t_k]
-    k = np.ceil((r["t"] - meta.t_start) / meta.epoch_dt_s - 1e-9).astype(int)
-    k = np.maximum(k, 1)
+    k = np.maximum(epoch_of(r["t"], meta.t_start, meta.epoch_dt_s), 1)
     a = np.minimum(r["a"], r["b"])
     b = np.maximum(r["a"], r["b"])
     err = np.abs(r["fault_err"])

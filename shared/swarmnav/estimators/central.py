@@ -27,7 +27,8 @@ import numpy as np
 
 from ..dataset import DatasetMeta, EpochInput, FaultKind
 from .base import InitialState, NodeEstimate, SwarmEstimator, tuned_settings
-from .factors import DRAG_SIGMA_SCALE, rotor_drag_factor, rotor_drag_prior
+from .factors import (DRAG_SIGMA_SCALE, range_to_point_factor, rotor_drag_factor, rotor_drag_prior, rotor_drag_sigma,
+                      tdoa_factor)
 from .imu import mean_specific_force, preintegrate, preintegration_params
 
 
@@ -279,7 +280,7 @@ class CentralEstimator(SwarmEstimator):
             g.add(prior)
             vals.insert(M(u), m0)
         ts[M(u)] = t  # constant state: never leaves the window
-        sig = self.drag_sigma_scale * float(np.sqrt(self.params[u].getAccelerometerCovariance()[0, 0] / T))
+        sig = rotor_drag_sigma(self.params[u], T, self.drag_sigma_scale)
         g.add(rotor_drag_factor(X(u, k), V(u, k), B(u, k), M(u), fbar[:2], sig))
 
     def _position_covariances(self, k: int) -> dict[int, np.ndarray]:
@@ -291,8 +292,6 @@ class CentralEstimator(SwarmEstimator):
         return {u: J.at(X(u, k), X(u, k))[3:6, 3:6] for u in self.uavs}
 
     def _add_ranges(self, g: gtsam.NonlinearFactorGraph, lab: dict[str, np.ndarray], k: int, live: set[int]) -> None:
-        from .factors import range_to_point_factor
-
         thr = self.meta.fault_threshold_m
         n = len(lab.get("range", []))
         for i in range(n):
@@ -316,8 +315,6 @@ class CentralEstimator(SwarmEstimator):
     def _add_tdoa(self, g: gtsam.NonlinearFactorGraph, lab: dict[str, np.ndarray], k: int, live: set[int]) -> None:
         """Passive-listening range differences of the epoch (every end live or an anchor), the
         truly faulty ones removed like the ranges (oracle)."""
-        from .factors import tdoa_factor
-
         thr = self.meta.fault_threshold_m
         for i in range(len(lab.get("rdiff", []))):
             if not keep_range(int(lab["fault_kind"][i]), float(lab["fault_err"][i]), thr):

@@ -34,6 +34,7 @@ import numpy as np
 
 __all__ = [
     "DRAG_SIGMA_SCALE",
+    "rotor_drag_sigma",
     "rotor_drag_prior",
     "wrap_angle",
     "range_h",
@@ -278,6 +279,12 @@ def whitened_cost(residuals: Sequence[float], sigmas: Sequence[float], weights: 
 # cross-validation over {1, 1.5, 2, 3} on MILUV (`swarmnav calibrate --dataset DS --grid
 # drag_sigma_scale=1,1.5,2,3`, docs/miluv.md "Fifth pass")
 DRAG_SIGMA_SCALE = 1.5
+
+
+def rotor_drag_sigma(params, epoch_s: float, scale: float = DRAG_SIGMA_SCALE) -> float:
+    """σ (m/s²) of the rotor-drag factor over an epoch of ``epoch_s`` s: ``scale`` × the epoch mean
+    of the accelerometer white noise of the preintegration ``params``."""
+    return float(scale) * float(np.sqrt(params.getAccelerometerCovariance()[0, 0] / epoch_s))
 
 
 def rotor_drag_prior(key_m: int, mu0: float, mu_sigma: float, f_xy0: np.ndarray, at_rest: bool):

@@ -79,8 +79,8 @@ from ..calibration import fallback_delta_l
 from ..dataset import DatasetMeta, EpochInput
 from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState, tuned_settings
 from . import detection as det
-from .factors import (DRAG_SIGMA_SCALE, rotor_drag_factor, rotor_drag_prior, stacked_range_factor, tdoa_factor,
-                      tdoa_h, wrap_angle)
+from .factors import (DRAG_SIGMA_SCALE, rotor_drag_factor, rotor_drag_prior, rotor_drag_sigma, stacked_range_factor,
+                      tdoa_factor, tdoa_h, wrap_angle)
 from .imu import mean_specific_force, preintegrate, preintegration_params
 
 __all__ = ["AtvfgEstimator", "FgEstimator", "InsEstimator", "GraphEstimator", "link_sigma"]
@@ -302,6 +302,7 @@ class GraphEstimator(NodeEstimator):
                 # a key the smoother does not hold yet is an error, e.g. an epoch without IMU data)
                 ts.insert((DRAG_KEY, inp.t))
         self._add_anchor_ranges(g, X(n), inp)
+        self._tdoa_own, self._tdoa_coop = self._tdoa_rows(inp)
         self._add_own_tdoa(g, X(n), inp)
         self.smoother.update(g, v, ts)
         self.n, self.t = n, inp.t
@@ -323,7 +324,7 @@ class GraphEstimator(NodeEstimator):
         self.delta_h = None
         self._last_state = NodeState(self.uav, inp.k, 0, inp.t, self.p.copy(), self._broadcast_cov(),
                                      self.vel.copy(), float("inf"), dict(self.my_ranges), self._own_bearings(inp),
-                                     self._quat(), len(self.my_ranges) + len(self._tdoa_rows(inp)[1]))
+                                     self._quat(), len(self.my_ranges) + len(self._tdoa_coop))
         return self._last_state
 
     def _drag_factor(self, g, n: int, inp: EpochInput):
@@ -354,7 +355,7 @@ class GraphEstimator(NodeEstimator):
             g.add(prior)
         if self._at_rest:
             return m0
-        sig = self.drag_sigma_scale * float(np.sqrt(self.params.getAccelerometerCovariance()[0, 0] / T))
+        sig = rotor_drag_sigma(self.params, T, self.drag_sigma_scale)
         g.add(rotor_drag_factor(X(n), V(n), B(n), DRAG_KEY, fbar[:2], sig))
         return m0
 
@@ -376,10 +377,10 @@ class GraphEstimator(NodeEstimator):
 
     def _peer_lever(self, peers: dict[int, NodeState], node: int, tag: int) -> np.ndarray:
         """ENU offset of a neighbour's tag from its broadcast position: R(q_peer)·lever (zero when
-        the neighbour sends no attitude or the tag has no lever arm)."""
+        ``peer_levers`` is off, the neighbour sends no attitude or the tag has no lever arm)."""
         q = peers[node].quat
         lev = self._tag_levers.get(node, {}).get(int(tag))
-        if q is None or lev is None or not np.any(lev):
+        if not self.peer_levers or q is None or lev is None or not np.any(lev):
             return np.zeros(3)
         return _rot3(q).matrix() @ lev
 
@@ -410,12 +411,14 @@ class GraphEstimator(NodeEstimator):
         sig = np.where(inp.range_sigma[m] > 0, inp.range_sigma[m], self.uwb_sigma)
         z = inp.range_m[m]
         f = stacked_range_factor(key, pts, z, sig, levers)
-        # anchors are known, not broadcast: a Huber kernel (k = 3 sigma, whitened) guards NLOS
+        g.add(gtsam.CustomFactor(self._anchor_noise(gtsam.noiseModel.Unit.Create(len(z))), [key], _unwrap_error(f)))
+
+    def _anchor_noise(self, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
+        """``base`` under the anchor kernel: measurements to known anchors are not broadcast, so a
+        robust kernel (``anchor_kernel``, default Huber, k = ``anchor_kernel_k`` whitened) guards NLOS."""
         me = gtsam.noiseModel.mEstimator
         kern = {"huber": me.Huber, "cauchy": me.Cauchy, "tukey": me.Tukey, "gm": me.GemanMcClure}[self.anchor_kernel]
-        huber = gtsam.noiseModel.Robust.Create(kern.Create(self.anchor_kernel_k),
-                                               gtsam.noiseModel.Unit.Create(len(z)))
-        g.add(gtsam.CustomFactor(huber, [key], _unwrap_error(f)))
+        return gtsam.noiseModel.Robust.Create(kern.Create(self.anchor_kernel_k), base)
 
     def _tdoa_rows(self, inp: EpochInput) -> tuple[list[int], list[int]]:
         """Indices of this epoch's tdoa rows: (own = every tag is this node's or an anchor's,
@@ -445,19 +448,15 @@ class GraphEstimator(NodeEstimator):
         return None, self.anchors[node] + np.asarray(self.meta.node(node).tags.get(tag, (0.0, 0.0, 0.0)), float)
 
     def _add_own_tdoa(self, g, key, inp: EpochInput):
-        own, _ = self._tdoa_rows(inp)
-        me = gtsam.noiseModel.mEstimator
-        kern = {"huber": me.Huber, "cauchy": me.Cauchy, "tukey": me.Tukey, "gm": me.GemanMcClure}[self.anchor_kernel]
-        for i in own:
+        for i in self._tdoa_own:
             ends = [self._tdoa_end(nd, tg, key) for nd, tg in self._tdoa_ends(inp, i)]
-            if self.anchor_time_shift and self.__dict__.get("_tdoa_shift", True):
+            if self.anchor_time_shift:
                 # taken at t_r < t: the own tags were at p(t) − v·(t − t_r); equivalently every
                 # anchor end moves by +v·(t − t_r) (as for anchor ranges)
                 dt = float(inp.t) - float(inp.tdoa_t[i])
                 ends = [(k, x) if k is not None else (k, x + dt * self._v_pred) for k, x in ends]
             sig = float(inp.tdoa_sigma[i]) if inp.tdoa_sigma[i] > 0 else self.uwb_sigma
-            noise = gtsam.noiseModel.Robust.Create(kern.Create(self.anchor_kernel_k), gtsam.noiseModel.Isotropic.Sigma(1, sig))
-            g.add(tdoa_factor(ends, float(inp.tdoa_m[i]), noise))
+            g.add(tdoa_factor(ends, float(inp.tdoa_m[i]), self._anchor_noise(gtsam.noiseModel.Isotropic.Sigma(1, sig))))
 
     def _still(self, inp: EpochInput) -> bool:
         """IMU-only rest test: within the epoch, gyro-norm and specific-force-norm spreads small,
@@ -627,7 +626,7 @@ class GraphEstimator(NodeEstimator):
             # cooperative tdoa rows whose neighbours are all live: per end ("self", world lever),
             # ("peer", node index) or ("fixed", ENU point); listener first, then initiator, responder
             rows_t = []
-            for i in self._tdoa_rows(inp)[1]:
+            for i in self._tdoa_coop:
                 ends = []
                 for nd, tg in self._tdoa_ends(inp, i):
                     if nd == self.uav:
@@ -635,7 +634,7 @@ class GraphEstimator(NodeEstimator):
                     elif nd in self.anchors:
                         ends.append(("fixed", self._tdoa_end(nd, tg)[1], None))
                     elif nd in peers:
-                        ends.append(("peer", idx[nd], self._peer_lever(peers, nd, tg) if self.peer_levers else np.zeros(3)))
+                        ends.append(("peer", idx[nd], self._peer_lever(peers, nd, tg)))
                     else:
                         break
                 else:
@@ -793,10 +792,9 @@ class GraphEstimator(NodeEstimator):
             if self.detect and hasattr(self, "_final_res"):
                 self.window.push(self._final_res)
         self._links_ready = False
-        q = self.pose.rotation().toQuaternion()
         pos = self.pose.translation().copy() if pos is None else pos
         return NodeEstimate(self.uav, self.k, self.t, pos, self.vel.copy(),
-                            0.5 * (pos_cov + pos_cov.T), np.array([q.w(), q.x(), q.y(), q.z()]), links,
+                            0.5 * (pos_cov + pos_cov.T), self._quat(), links,
                             delta_h_m=self.delta_h if self.detect else None,
                             delta_l_m=self.delta_l if self.detect else None)
 
