@@ -15,7 +15,8 @@ def _state(rng):
     return NodeState(3, 5, 2, 5.0, rng.normal(size=3) * 1e3, np.diag(rng.random(3)), rng.normal(size=3),
                      float("inf"), {1: 12.345678901234567, 7: float(rng.random() * 400)},
                      {1: (float(rng.uniform(-3, 3)), float(rng.uniform(-1.5, 1.5)), 0.017453292519943295),
-                      9: (-np.pi, np.pi / 2, 1e-3)}, _unit_quat(rng), n_links=7)
+                      9: (-np.pi, np.pi / 2, 1e-3)}, _unit_quat(rng), n_links=7,
+                     traj={4: rng.normal(size=3) * 10, 2: rng.normal(size=3)})
 
 
 def _unit_quat(rng):
@@ -30,6 +31,7 @@ def test_state_float64_exact():
     assert np.array_equal(s.pos, s2.pos) and np.array_equal(s.pos_cov, s2.pos_cov) and np.array_equal(s.vel, s2.vel)
     assert s2.delta_m == float("inf") and s2.ranges == s.ranges and (s2.uav, s2.k, s2.r) == (3, 5, 2)
     assert s2.bearings == s.bearings and np.array_equal(s2.quat, s.quat) and s2.n_links == 7
+    assert list(s2.traj) == sorted(s.traj) and all(np.array_equal(s2.traj[k], s.traj[k]) for k in s.traj)
 
 
 def test_extreme_floats_exact():
@@ -232,6 +234,7 @@ def test_state_frame_exact():
     assert s2.delta_m == float("inf") and s2.ranges == s.ranges and list(s2.ranges) == sorted(s.ranges)
     assert s2.bearings == s.bearings and list(s2.bearings) == sorted(s.bearings)
     assert np.array_equal(s2.quat, s.quat) and s2.n_links == 7
+    assert list(s2.traj) == sorted(s.traj) and all(np.array_equal(s2.traj[k], s.traj[k]) for k in s.traj)
     s.quat = None  # no attitude (e.g. fkf) travels as zeros and comes back as None
     assert M.decode_state(M.encode_state(s)).quat is None
     assert (s2.uav, s2.k, s2.r, s2.t) == (3, 5, 2, 5.0)
@@ -260,6 +263,10 @@ def test_state_frame_rejects():
     for bearing in ((0.0, 1.6, 0.01), (3.2, 0.0, 0.01), (0.0, 0.0, 0.0), (0.0, float("nan"), 0.01)):
         bad = _state(np.random.default_rng(9))
         bad.bearings = {4: bearing}
+        cases.append((M.encode_state(bad), "invalid"))
+    for traj in ({3: np.array([np.inf, 0.0, 0.0])}, {-1: np.zeros(3)}, {6: np.zeros(3)}):  # epoch 6 > k 5
+        bad = _state(np.random.default_rng(9))
+        bad.traj = traj
         cases.append((M.encode_state(bad), "invalid"))
     for payload, reason in cases:
         with pytest.raises(M.WireError) as e:

@@ -20,16 +20,20 @@ def add_arguments(p):
     p.add_argument("--out", required=True, metavar="DATASET_DIR", help="output dataset directory (created)")
     p.add_argument("--epoch-dt", type=float, default=0.1, metavar="S",
                    help="epoch length in seconds (default 0.1; ranges keep their own timestamps inside the epoch)")
+    p.add_argument("--estimation", metavar="TOML", default=None,
+                   help="estimator tuning embedded in the dataset (its [estimation] table; default "
+                        "configs/miluv.toml; 'none' = the estimators' defaults)")
 
 
 def run(args) -> int:
-    from services.importers.miluv import convert
+    from services.importers.miluv import DEFAULT_ESTIMATION, convert
     from swarmnav.errors import DatasetError
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise DatasetError(f"--out {out}: exists and is not a directory")
-    ds, summary = convert(args.src, epoch_dt=args.epoch_dt)
+    est = DEFAULT_ESTIMATION if args.estimation is None else (None if args.estimation == "none" else args.estimation)
+    ds, summary = convert(args.src, epoch_dt=args.epoch_dt, estimation=est)
     ds.write(out)
     r = summary["ranges"]
     print(f"imported {summary['experiment']}: {len(ds.meta.uav_ids())} UAVs, {len(ds.meta.anchors())} anchors, "

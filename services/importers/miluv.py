@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from swarmnav.config import load_estimation
 from swarmnav.dataset import (Dataset, DatasetMeta, Earth, FaultKind, ImuNoise, Node, TABLE_COLUMNS, epoch_of)
 from swarmnav.errors import DatasetError
 
@@ -259,7 +260,15 @@ def _experiment_row(src: Path) -> dict[str, str]:
     raise DatasetError(f"{p}: experiment {src.name!r} not listed (the source folder must keep its MILUV name)")
 
 
-def convert(src: str | Path, epoch_dt: float = 0.1) -> tuple[Dataset, dict]:
+DEFAULT_ESTIMATION = Path(__file__).resolve().parents[2] / "configs" / "miluv.toml"
+
+
+def convert(src: str | Path, epoch_dt: float = 0.1, estimation: str | Path | None = DEFAULT_ESTIMATION
+            ) -> tuple[Dataset, dict]:
+    """MILUV experiment folder -> (Dataset, import summary). ``estimation``: a TOML file whose
+    ``[estimation]`` table (estimator tuning for this kind of data, configs/miluv.toml) is embedded
+    in ``meta.config["estimation"]`` — as a simulated dataset carries its scenario's — so
+    ``evaluate``/``launch``/``calibrate --dataset`` use it; None = the estimators' defaults."""
     src = Path(src)
     if not src.is_dir():
         raise DatasetError(f"{src}: not a directory")
@@ -554,7 +563,8 @@ def convert(src: str | Path, epoch_dt: float = 0.1) -> tuple[Dataset, dict]:
         seed=None,
         config={"importer": "swarmnav import-miluv", "experiment": dict(sorted(exp.items())), "imu_source": "imu_px4.csv",
                 "frame": "Vicon world (z up): x->E, y->N, z->U; no geodetic origin",
-                "anchor_node_id": f"{ANCHOR_NODE_OFFSET} + MILUV anchor id", "uav_node_id": "N for ifo00N"},
+                "anchor_node_id": f"{ANCHOR_NODE_OFFSET} + MILUV anchor id", "uav_node_id": "N for ifo00N",
+                **({"estimation": load_estimation(estimation)} if estimation is not None else {})},
         config_sha256=h.hexdigest(),
         origin=None,
         t_start=t_start,

@@ -302,6 +302,21 @@ def parse_config(data: dict, source: str = "<config>") -> Scenario:
         raise ConfigError(format_validation_error(e, source)) from None
 
 
+def load_estimation(path: str | Path) -> dict:
+    """The validated ``[estimation]`` table of a TOML file (e.g. configs/miluv.toml: the estimator
+    tuning an importer embeds in a recorded dataset's meta), as the dict given (unset fields stay
+    unset, so the estimators' defaults apply to them)."""
+    data = _read_toml(Path(path))
+    est = data.get("estimation")
+    if not isinstance(est, dict):
+        raise ConfigError(f"{path}: no [estimation] table")
+    try:
+        Estimation.model_validate(est)
+    except ValidationError as e:
+        raise ConfigError(format_validation_error(e, f"{path} [estimation]")) from None
+    return est
+
+
 def load_config(path: str | Path) -> Scenario:
     """Load and validate a scenario TOML file (following its ``base`` chain)."""
     return parse_config(_read_toml(Path(path)), str(path))

@@ -212,6 +212,17 @@ class GraphEstimator(NodeEstimator):
         # Gaussian, or atvfg's double-threshold test with tdoa_detection: _tdoa_weights)
         self.use_tdoa = bool(s.get("use_tdoa", True))
         self.tdoa_detection = bool(s.get("tdoa_detection", False))
+        self.tdoa_scale = float(s.get("tdoa_sigma_scale", 1.0))
+        # relinked commit (_relinked_commit): window in epochs (0 = off; kept inside the smoother's
+        # lag), weight, neighbour-covariance scale, and atvfg's double threshold on the window's
+        # tdoa residuals in units of each row's sigma (Δl = delta_l_fallback_sigmas)
+        relink_s = float(s.get("relink_s", 0.0))
+        dt = float(meta.epoch_dt_s)
+        self.relink = max(0, min(int(round(relink_s / dt)), int(self.lag / dt) - 2)) if relink_s > 0 else 0
+        self.relink_w = float(s.get("relink_weight", 0.6))
+        self.relink_cov = float(s.get("relink_cov_scale", 0.5))
+        self.relink_detect = self.detect and bool(s.get("relink_tdoa_detection", True))
+        self.relink_dl = float(s.get("delta_l_fallback_sigmas", 3.0))
         imu = node.imu
         self.bias_sigmas = np.r_[[max(imu.accel_bias_sigma, 1e-4)] * 3, [max(imu.gyro_bias_sigma, 1e-6)] * 3]
         self._reset(init.t, init.pos, init.vel, init.quat, np.asarray(init.pos_sigma, float),
@@ -259,6 +270,8 @@ class GraphEstimator(NodeEstimator):
         self.p = self.p_loc.copy()
         self._v_pred = self.vel.copy()
         self._links_ready = False
+        self._peer_traj: dict[int, dict] = {}
+        self._rl: list[dict] = []
 
     # -- epoch -------------------------------------------------------------------------------
 
@@ -324,7 +337,8 @@ class GraphEstimator(NodeEstimator):
         self.delta_h = None
         self._last_state = NodeState(self.uav, inp.k, 0, inp.t, self.p.copy(), self._broadcast_cov(),
                                      self.vel.copy(), float("inf"), dict(self.my_ranges), self._own_bearings(inp),
-                                     self._quat(), len(self.my_ranges) + len(self._tdoa_coop))
+                                     self._quat(), len(self.my_ranges) + len(self._tdoa_coop),
+                                     traj=self._traj_state())
         return self._last_state
 
     def _drag_factor(self, g, n: int, inp: EpochInput):
@@ -455,7 +469,7 @@ class GraphEstimator(NodeEstimator):
                 # anchor end moves by +v·(t − t_r) (as for anchor ranges)
                 dt = float(inp.t) - float(inp.tdoa_t[i])
                 ends = [(k, x) if k is not None else (k, x + dt * self._v_pred) for k, x in ends]
-            sig = float(inp.tdoa_sigma[i]) if inp.tdoa_sigma[i] > 0 else self.uwb_sigma
+            sig = self.tdoa_scale * (float(inp.tdoa_sigma[i]) if inp.tdoa_sigma[i] > 0 else self.uwb_sigma)
             g.add(tdoa_factor(ends, float(inp.tdoa_m[i]), self._anchor_noise(gtsam.noiseModel.Isotropic.Sigma(1, sig))))
 
     def _still(self, inp: EpochInput) -> bool:
@@ -518,6 +532,8 @@ class GraphEstimator(NodeEstimator):
                     self.peer_ranges.setdefault((min(j, o), max(j, o)), float(d))
             if s.bearings and self.uav in s.bearings:
                 self.peer_bearings[j] = s.bearings[self.uav]
+            if s.r == 0:
+                self._peer_traj[j] = s.traj
         c = self._round_cache(peers)
         nb = c["nb"]
         # positions / covariances of every node in c["nodes"] order (own row: own last state)
@@ -638,7 +654,7 @@ class GraphEstimator(NodeEstimator):
                     else:
                         break
                 else:
-                    sg = float(inp.tdoa_sigma[i]) if inp.tdoa_sigma[i] > 0 else self.uwb_sigma
+                    sg = self.tdoa_scale * (float(inp.tdoa_sigma[i]) if inp.tdoa_sigma[i] > 0 else self.uwb_sigma)
                     rows_t.append((ends, float(inp.tdoa_m[i]), sg * sg))
             if rows_t:
                 c["tdoa"] = rows_t
@@ -700,6 +716,94 @@ class GraphEstimator(NodeEstimator):
                            if kind == "peer" else (kind, x, None) for kind, x, lev in ends], z, sig2, w)
                          for (ends, z, sig2), w in zip(c["tdoa"], self._tdoa_w) if w > 0]
         return L
+
+    # -- relinked commit ----------------------------------------------------------------------
+
+    def _traj_state(self) -> dict[int, np.ndarray]:
+        """Smoothed positions (ENU m) of the epochs in the relink window, epoch k -> position, for
+        the round-0 broadcast (empty when relinking is off)."""
+        if self.relink <= 0 or not self._rl:
+            return {}
+        est = self.smoother.calculateEstimate()
+        return {h["k"]: est.atPose3(X(h["n"])).translation().copy() for h in self._rl if est.exists(X(h["n"]))}
+
+    def _tdoa_residuals(self, c: dict, P: np.ndarray) -> np.ndarray:
+        """|z − h| / σ of the cooperative tdoa rows of round cache ``c`` at positions P
+        (``c["nodes"]`` order; the own row is the own body origin)."""
+        me = P[c["idx"][self.uav]]
+        out = []
+        for ends, z, sig2 in c.get("tdoa", ()):
+            pts = [me + x if kind == "self" else (P[x] + lev if kind == "peer" else x) for kind, x, lev in ends]
+            out.append(abs(z - tdoa_h(*pts)[0]) / np.sqrt(sig2))
+        return np.array(out, float)
+
+    def _link_summary(self, h: dict, p_own: np.ndarray, P: np.ndarray, tdoa_w: np.ndarray):
+        """One epoch's cooperative links (record ``h``) as a Gaussian position factor on its pose,
+        linearised at ``p_own`` with the neighbours at P (their covariance × ``relink_cov_scale``),
+        information × ``relink_weight``; None without information."""
+        save = (self._cache, self._P, self._C, self._weights, self._tdoa_w)
+        self._cache, self._P, self._C, self._weights, self._tdoa_w = h["c"], P, h["C"], h["w"], tdoa_w
+        try:
+            lam, gv = self._normal_equations(p_own, coop_only=True, L=self._prepare_links(self.relink_cov, commit=True))
+        finally:
+            self._cache, self._P, self._C, self._weights, self._tdoa_w = save
+        if not np.trace(lam) > 0:
+            return None
+        lam, gv = lam * self.relink_w + 1e-8 * np.eye(3), gv * self.relink_w
+        z = p_own + np.linalg.solve(lam, gv)
+        return gtsam.GPSFactor(X(h["n"]), z, gtsam.noiseModel.Gaussian.Information(0.5 * (lam + lam.T)))
+
+    def _relinked_commit(self) -> None:
+        """Commit with relinking (``relink_s`` > 0), instead of the one-shot commit.
+
+        Each epoch's cooperative links become one position factor on that epoch's pose, and the
+        factors of the last ``relink`` epochs are *recomputed* every epoch — removed from the
+        smoother and added again, linearised at the own smoothed positions and with the
+        neighbours' latest smoothed positions of those epochs (``NodeState.traj``, broadcast in
+        round 0). The swarm thereby runs block-Jacobi sweeps on its joint fixed-lag problem: a link
+        fused when both ends knew little is re-fused once later anchors have refined them, as the
+        centralised smoother does. For atvfg the window's tdoa links also get the double-threshold
+        test on these smoothed residuals (in units of each row's σ: Δl = ``delta_l_fallback_sigmas``,
+        Δh by 2-means over the window's residuals), where the filtered residuals were dominated by
+        state error. Measured on MILUV and on the dense paper swarm in docs/miluv.md "Sixth pass"."""
+        est = self.smoother.calculateEstimate()
+        cur = {"k": self.k, "n": self.n, "c": self._cache, "w": dict(self._weights), "tw": np.array(self._tdoa_w, float),
+               "P": self._P.copy(), "C": self._C.copy(), "fidx": None}
+        self._rl = [h for h in self._rl if h["k"] > self.k - self.relink] + [cur]
+        jobs = []
+        for h in self._rl:
+            if h is not cur and not est.exists(X(h["n"])):
+                continue
+            p_own = self.p if h is cur else est.atPose3(X(h["n"])).translation()
+            P = h["P"].copy()
+            for i, u in enumerate(h["c"]["nodes"]):
+                if u == self.uav:
+                    P[i] = p_own
+                elif h is not cur and h["k"] in self._peer_traj.get(u, {}):
+                    P[i] = self._peer_traj[u][h["k"]]
+            jobs.append((h, p_own, P, self._tdoa_residuals(h["c"], P) if self.relink_detect else None))
+        dh = None
+        if self.relink_detect:
+            pool = np.concatenate([r for *_, r in jobs] + [np.zeros(0)])
+            if len(pool):
+                dh = det.upper_threshold(pool, self.relink_dl, self.floor_factor, self.kmeans_backend, self.ceil_factor)
+        g = gtsam.NonlinearFactorGraph()
+        remove, added = [], []
+        for h, p_own, P, res in jobs:
+            tw = h["tw"]
+            if dh is not None and len(res):
+                tw = tw * det.classify_and_weigh(res, self.relink_dl, dh, self.cap_h1)[1]
+            if h["fidx"] is not None:
+                remove.append(h["fidx"])
+                h["fidx"] = None
+            f = self._link_summary(h, p_own, P, tw)
+            if f is not None:
+                g.add(f)
+                added.append(h)
+        self.smoother.update(g, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap(), remove)
+        for h, i in zip(added, self.smoother.getISAM2Result().getNewFactorsIndices()):
+            h["fidx"] = int(i)
+        self._read_estimate()
 
     def _infl(self, o: int) -> float:
         """Covariance inflation of neighbour o's broadcast (double-counting remedy): by default the
@@ -765,7 +869,9 @@ class GraphEstimator(NodeEstimator):
         links: list[LinkInfo] = []
         pos_cov = self.P_loc
         pos = None
-        if self.cooperative and self._links_ready:
+        if self.cooperative and self._links_ready and self.relink > 0:
+            self._relinked_commit()
+        elif self.cooperative and self._links_ready:
             Lc = self._prepare_links(None, commit=True)
             Lam, gsum = self._normal_equations(self.p, coop_only=True, L=Lc)
             if np.trace(Lam) > 0 and self.commit_weight > 0:

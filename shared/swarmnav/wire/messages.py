@@ -31,7 +31,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from ..dataset import EpochInput
 from ..estimators.base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeState
 
-SCHEMA_VERSION = 4  # 2: binary input/state frames (below); 3: states carry az/el bearings; 4: tdoa inputs
+SCHEMA_VERSION = 5  # 2: binary input/state frames (below); 3: states carry az/el bearings; 4: tdoa inputs;
+#                    5: states carry the relink window's smoothed positions (traj)
 
 # no UWB range or range difference is this long: larger (finite) values are hostile or corrupt
 MAX_UWB_M = 1e5
@@ -206,6 +207,8 @@ class StateMsg(UavMsg):
     bearings: dict[int, Annotated[list[Finite], Field(min_length=3, max_length=3)]] = Field(default_factory=dict)
     quat: Annotated[list[Finite], Field(min_length=4, max_length=4)] | None = None  # w, x, y, z body -> ENU
     n_links: int = Field(0, ge=0, le=1_000_000)
+    # round 0: epoch -> smoothed ENU position of the sender's relink window (graph.py)
+    traj: dict[int, Vec3] = Field(default_factory=dict)
 
     @field_validator("quat")
     @classmethod
@@ -342,7 +345,8 @@ def state_to_msg(s: NodeState) -> StateMsg:
     return StateMsg(uav=s.uav, k=s.k, r=s.r, t=float(s.t), pos=_f(s.pos), pos_cov=_f(s.pos_cov), vel=_f(s.vel),
                     delta_m=float(s.delta_m), ranges={int(o): float(d) for o, d in sorted(s.ranges.items())},
                     bearings={int(o): [float(x) for x in b] for o, b in sorted(s.bearings.items())},
-                    quat=None if s.quat is None else _f(s.quat), n_links=int(s.n_links))
+                    quat=None if s.quat is None else _f(s.quat), n_links=int(s.n_links),
+                    traj={int(k): _f(p) for k, p in sorted(s.traj.items())})
 
 
 def msg_to_state(m: StateMsg) -> NodeState:
@@ -350,7 +354,8 @@ def msg_to_state(m: StateMsg) -> NodeState:
                      pos_cov=np.array(m.pos_cov, np.float64).reshape(3, 3), vel=np.array(m.vel, np.float64),
                      delta_m=m.delta_m, ranges={int(o): float(d) for o, d in sorted(m.ranges.items())},
                      bearings={int(o): (float(b[0]), float(b[1]), float(b[2])) for o, b in sorted(m.bearings.items())},
-                     quat=None if m.quat is None else np.array(m.quat, np.float64), n_links=m.n_links)
+                     quat=None if m.quat is None else np.array(m.quat, np.float64), n_links=m.n_links,
+                     traj={int(k): np.array(p, np.float64) for k, p in sorted(m.traj.items())})
 
 
 def estimate_to_msg(e: NodeEstimate, **extra) -> EstimateMsg:
@@ -448,9 +453,10 @@ SENSOR_MSG: dict[str, type[UavMsg]] = {"imu": ImuMsg, "gnss": GnssMsg, "uwb": Uw
 #   :data:`_INPUT_I` order. The arrays are validated with numpy after decoding (finite, ranges
 #   >= 0, sigmas > 0, ids >= 0, no self-ranging or self-observation).
 # * ``uav/<id>/state`` (node -> peers, every round): ``b"SNS"`` + version byte, int32 LE
-#   uav, k, r, uint32 n (ranges), uint32 m (bearings), float64 LE [t, pos(3), pos_cov(9,
-#   row-major), vel(3), delta_m, n_links, quat(4: w, x, y, z; all zero = no attitude), range
-#   values(n), bearings (az, el, sigma)(m)], int64 LE range peer ids(n), bearing target ids(m).
+#   uav, k, r, uint32 n (ranges), uint32 m (bearings), uint32 w (relink-window positions),
+#   float64 LE [t, pos(3), pos_cov(9, row-major), vel(3), delta_m, n_links, quat(4: w, x, y, z;
+#   all zero = no attitude), range values(n), bearings (az, el, sigma)(m), positions (3)(w)],
+#   int64 LE range peer ids(n), bearing target ids(m), position epochs(w).
 #   Decoded straight into the core's NodeState.
 #
 # float64 bytes are copied, so values arrive bit-identical (as with the JSON repr before).
@@ -460,7 +466,7 @@ import struct  # noqa: E402
 
 _STATE_MAGIC = b"SNS"
 _INPUT_MAGIC = b"SNI"
-_STATE_HDR = struct.Struct("<3sBiiiII")
+_STATE_HDR = struct.Struct("<3sBiiiIII")
 _INPUT_HDR = struct.Struct("<3sBI")
 _STATE_NF = 22  # t, pos 3, cov 9, vel 3, delta_m, n_links, quat 4, then n range values
 
@@ -475,8 +481,9 @@ def _check_magic(payload: bytes, magic: bytes, min_len: int) -> None:
 def encode_state(s: NodeState) -> bytes:
     ids = sorted(int(o) for o in s.ranges)
     bids = sorted(int(o) for o in s.bearings)
-    n, m = len(ids), len(bids)
-    f = np.empty(_STATE_NF + n + 3 * m, np.float64)
+    kids = sorted(int(k) for k in s.traj)
+    n, m, w = len(ids), len(bids), len(kids)
+    f = np.empty(_STATE_NF + n + 3 * m + 3 * w, np.float64)
     f[0] = s.t
     f[1:4] = np.asarray(s.pos, np.float64).ravel()
     f[4:13] = np.asarray(s.pos_cov, np.float64).ravel()
@@ -485,20 +492,21 @@ def encode_state(s: NodeState) -> bytes:
     f[17] = float(s.n_links)
     f[18:22] = 0.0 if s.quat is None else np.asarray(s.quat, np.float64).ravel()
     f[_STATE_NF:_STATE_NF + n] = [s.ranges[o] for o in ids]
-    f[_STATE_NF + n:] = np.asarray([s.bearings[o] for o in bids], np.float64).ravel()
-    return (_STATE_HDR.pack(_STATE_MAGIC, SCHEMA_VERSION, int(s.uav), int(s.k), int(s.r), n, m)
-            + f.astype("<f8", copy=False).tobytes() + np.asarray(ids + bids, "<i8").tobytes())
+    f[_STATE_NF + n:_STATE_NF + n + 3 * m] = np.asarray([s.bearings[o] for o in bids], np.float64).ravel()
+    f[_STATE_NF + n + 3 * m:] = np.asarray([s.traj[k] for k in kids], np.float64).ravel()
+    return (_STATE_HDR.pack(_STATE_MAGIC, SCHEMA_VERSION, int(s.uav), int(s.k), int(s.r), n, m, w)
+            + f.astype("<f8", copy=False).tobytes() + np.asarray(ids + bids + kids, "<i8").tobytes())
 
 
 def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = None) -> NodeState:
     """Binary state frame -> NodeState; WireError(malformed|version|invalid|wrong_uav|stale)."""
     _check_magic(payload, _STATE_MAGIC, _STATE_HDR.size)
-    _, _, u, k, r, n, m = _STATE_HDR.unpack_from(payload)
-    nf = _STATE_NF + n + 3 * m
-    if len(payload) != _STATE_HDR.size + 8 * nf + 8 * (n + m):
-        raise WireError("malformed", f"state frame of {len(payload)} bytes for {n} ranges and {m} bearings")
+    _, _, u, k, r, n, m, w = _STATE_HDR.unpack_from(payload)
+    nf = _STATE_NF + n + 3 * m + 3 * w
+    if len(payload) != _STATE_HDR.size + 8 * nf + 8 * (n + m + w):
+        raise WireError("malformed", f"state frame of {len(payload)} bytes for {n} ranges, {m} bearings, {w} positions")
     f = np.frombuffer(payload, "<f8", nf, _STATE_HDR.size).astype(np.float64)
-    ids = np.frombuffer(payload, "<i8", n + m, _STATE_HDR.size + 8 * nf)
+    ids = np.frombuffer(payload, "<i8", n + m + w, _STATE_HDR.size + 8 * nf)
     if u < 1 or k < 0 or r < 0:
         raise WireError("invalid", f"ids uav {u} k {k} r {r}")
     if not (np.isfinite(f[:16]).all() and np.isfinite(f[18:]).all()):
@@ -506,8 +514,12 @@ def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = 
     q = f[18:22]
     if q.any() and abs(float(np.linalg.norm(q)) - 1.0) > 1e-6:
         raise WireError("invalid", "attitude quaternion not of unit norm")
-    rng, bear = f[_STATE_NF:_STATE_NF + n], f[_STATE_NF + n:].reshape(m, 3)
-    if (np.isnan(f[16]) or f[16] < 0 or (n + m and ids.min() < 0) or (n and rng.min() < 0)
+    rng, bear = f[_STATE_NF:_STATE_NF + n], f[_STATE_NF + n:_STATE_NF + n + 3 * m].reshape(m, 3)
+    traj = f[_STATE_NF + n + 3 * m:].reshape(w, 3)
+    kids = ids[n + m:]
+    if w and (kids.min() < 0 or kids.max() > k or len(set(kids.tolist())) != w):
+        raise WireError("invalid", "relink-window epochs not distinct, negative or after the state's epoch")
+    if (np.isnan(f[16]) or f[16] < 0 or (n + m and ids[:n + m].min() < 0) or (n and rng.min() < 0)
             or not (0 <= f[17] <= 1e6 and f[17] == int(f[17]))):
         raise WireError("invalid", "negative range/delta/link count or id")
     if m and not ((np.abs(bear[:, 0]) <= np.pi).all() and (np.abs(bear[:, 1]) <= np.pi / 2).all()
@@ -517,7 +529,8 @@ def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = 
     return NodeState(uav=u, k=k, r=r, t=float(f[0]), pos=f[1:4].copy(), pos_cov=f[4:13].reshape(3, 3).copy(),
                      vel=f[13:16].copy(), delta_m=float(f[16]), ranges=dict(zip(ids[:n].tolist(), rng.tolist())),
                      quat=q.copy() if q.any() else None, n_links=int(f[17]),
-                     bearings={int(o): (float(b[0]), float(b[1]), float(b[2])) for o, b in zip(ids[n:].tolist(), bear)})
+                     traj={int(e): p.copy() for e, p in zip(kids.tolist(), traj)},
+                     bearings={int(o): (float(b[0]), float(b[1]), float(b[2])) for o, b in zip(ids[n:n + m].tolist(), bear)})
 
 
 class GnssPart(BaseModel):
