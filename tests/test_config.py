@@ -105,3 +105,16 @@ def test_derived_file_overrides_base(tmp_path):
 def test_parse_config_dict_error_names_source():
     with pytest.raises(ConfigError, match="<mine>"):
         parse_config({"scenario": {}}, "<mine>")
+
+
+def test_load_estimation_names_bad_field(tmp_path):
+    from swarmnav.config import load_estimation
+
+    assert load_estimation(CONFIGS / "miluv.toml")["graph"]["relink_s"] > 0
+    p = tmp_path / "e.toml"
+    p.write_text("[estimation]\nfixed_lag_s = -1\n")
+    with pytest.raises(ConfigError, match=r"field 'fixed_lag_s'"):
+        load_estimation(p)
+    p.write_text("[scenario]\nname = 'x'\n")
+    with pytest.raises(ConfigError, match=r"no \[estimation\] table"):
+        load_estimation(p)

@@ -518,3 +518,70 @@ def test_neighbour_tag_lever_arms_placed_with_broadcast_attitude(noiseless, algo
     assert ignored > 2 * placed + 0.02, (placed, ignored)
     if algo == "atvfg":
         assert links and all(li.cls == LinkClass.H2_NORMAL for li in links), [li for li in links if li.cls != LinkClass.H2_NORMAL][:3]
+
+
+@pytest.mark.parametrize("algo", ["fg", "atvfg"])
+def test_relinked_commit_exact_and_bounded(noiseless, algo):
+    """Relinking (relink_s > 0): noiseless error stays near zero; the window's factors are replaced,
+    not accumulated — at most ``relink`` relinked factors live in the smoother, each a valid slot
+    holding a position factor on its epoch's pose, and the smoother's factor count stops growing;
+    round-0 states broadcast the smoothed positions of the window's epochs."""
+    sc, ds = noiseless
+    s = _settings(sc, relink_s=3 * ds.meta.epoch_dt_s)
+    sl = EpochSlicer(ds)
+    uavs = ds.meta.uav_ids()
+    inits = initial_states(ds, 3)
+    nodes = {u: CLASSES[algo](u, ds.meta, s, inits[u]) for u in uavs}
+    tr = ds.table("truth")
+    err, counts = [], []
+    for k in range(1, ds.meta.n_epochs() + 1):
+        gens = {u: node_epoch(nodes[u], sl.epoch(k, u), s["rounds"], s["convergence_m"]) for u in uavs}
+        states = {u: next(g) for u, g in gens.items()}
+        round0 = dict(states)
+        out = {}
+        while gens:  # the in-process transport's lock-step rounds (protocol.run_epoch_in_process)
+            snap = dict(states)
+            for u, g in list(gens.items()):
+                try:
+                    states[u] = g.send({j: x for j, x in snap.items() if j != u})
+                except StopIteration as stop:
+                    out[u] = stop.value
+                    del gens[u]
+                    states.pop(u, None)
+        t = ds.meta.epoch_time(k)
+        for u, e in out.items():
+            i = np.flatnonzero((tr["node"] == u) & (np.abs(tr["t"] - t) < 1e-6))[0]
+            err.append(e.pos - np.array([tr["pe"][i], tr["pn"][i], tr["pu"][i]]))
+        n = nodes[uavs[0]]
+        fs = n.smoother.getFactors()
+        counts.append(sum(1 for i in range(fs.size()) if fs.exists(i)))
+        live = [h for h in n._rl if h["fidx"] is not None]
+        assert n.relink == 3 and len(live) <= n.relink
+        for h in live:
+            f = fs.at(h["fidx"])
+            assert isinstance(f, gtsam.GPSFactor) and list(f.keys()) == [X(h["n"])]
+            # one relinked factor per pose (+ the GNSS fix): re-fusing replaced the earlier ones
+            same = [i for i in range(fs.size()) if fs.exists(i) and isinstance(fs.at(i), gtsam.GPSFactor)
+                    and list(fs.at(i).keys()) == [X(h["n"])]]
+            assert len(same) <= 2, (k, h["k"], len(same))
+    rmse = float(np.sqrt(np.mean(np.sum(np.array(err) ** 2, 1))))
+    assert rmse < 0.05, rmse
+    K = len(counts)
+    assert max(counts[K // 2:]) <= max(counts[:K // 2]) + 5, counts  # bounded by the fixed lag
+    traj = round0[uavs[1]].traj  # the last epoch's round-0 state of another UAV
+    assert sorted(traj) == [K - 3, K - 2, K - 1], sorted(traj)
+
+
+def test_relinked_tdoa_detection_drops_biased_rows(noiseless):
+    """Relinking, range differences all biased by 0.3 m (60 σ): atvfg's double threshold on the
+    window's smoothed residuals (units of σ, Δl = 3) classifies them H0 and keeps the noiseless
+    error near zero; fg (Gaussian) is pulled away, and so is atvfg with the test switched off."""
+    sc, ds = noiseless
+    rm = lambda e: float(np.sqrt(np.mean(np.sum(e ** 2, 1))))  # noqa: E731
+    biased = _with_tdoa(ds, 0.3)
+    s = dict(relink_s=3 * ds.meta.epoch_dt_s)
+    atvfg = rm(_run(biased, AtvfgEstimator, 3, _settings(sc, **s))[0])
+    fg = rm(_run(biased, FgEstimator, 3, _settings(sc, **s))[0])
+    off = rm(_run(biased, AtvfgEstimator, 3, _settings(sc, relink_tdoa_detection=False, **s))[0])
+    assert atvfg < 0.05, atvfg
+    assert fg > 2 * atvfg + 0.02 and off > 2 * atvfg + 0.02, (atvfg, fg, off)

@@ -284,7 +284,20 @@ def test_cli(tmp_path):
     from services.cli import main
 
     assert main(["import-miluv", str(SRC), "--out", str(tmp_path / "ds")]) == 0
-    assert Dataset.read(tmp_path / "ds").meta.n_epochs() == 778
+    meta = Dataset.read(tmp_path / "ds").meta
+    assert meta.n_epochs() == 778
+    # configs/miluv.toml's [estimation] table travels in the dataset and reaches the estimators
+    from swarmnav.config import load_estimation
+    from swarmnav.estimators.registry import settings_for_dataset
+
+    assert meta.config["estimation"] == load_estimation(ROOT / "configs" / "miluv.toml")
+    st = settings_for_dataset(meta)
+    assert st["graph"]["relink_s"] == 3.0 and st["fixed_lag_s"] == 5.0 and st["convergence_m"] == 0.01  # unset: default
+    assert main(["import-miluv", str(SRC), "--out", str(tmp_path / "plain"), "--estimation", "none"]) == 0
+    assert "estimation" not in Dataset.read(tmp_path / "plain").meta.config
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[estimation]\nrounds = 0\n")
+    assert main(["import-miluv", str(SRC), "--out", str(tmp_path / "y"), "--estimation", str(bad)]) == 2
     assert main(["import-miluv", str(tmp_path), "--out", str(tmp_path / "x")]) == 2  # no robot folders
 
 
