@@ -869,12 +869,13 @@ class GraphEstimator(NodeEstimator):
         links: list[LinkInfo] = []
         pos_cov = self.P_loc
         pos = None
-        if self.cooperative and self._links_ready and self.relink > 0:
-            self._relinked_commit()
-        elif self.cooperative and self._links_ready:
+        if self.cooperative and self._links_ready:
             Lc = self._prepare_links(None, commit=True)
             Lam, gsum = self._normal_equations(self.p, coop_only=True, L=Lc)
-            if np.trace(Lam) > 0 and self.commit_weight > 0:
+            committed = np.trace(Lam) > 0 and (self.commit_weight > 0 or self.relink > 0)
+            if self.relink > 0:
+                self._relinked_commit()  # this epoch's links join the re-fused window
+            elif committed:
                 Lam, gsum = Lam * self.commit_weight, gsum * self.commit_weight
                 Lr = Lam + 1e-8 * np.eye(3)
                 z = self.p + np.linalg.solve(Lr, gsum)
@@ -883,15 +884,19 @@ class GraphEstimator(NodeEstimator):
                 g.add(gtsam.GPSFactor(X(self.n), z, gtsam.noiseModel.Gaussian.Information(Lr)))
                 self.smoother.update(g, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
                 self._read_estimate()
+            if committed:
+                w = self.commit_weight if self.relink == 0 else 1.0
                 pos_cov = np.linalg.inv(self._info + Lam)
-                if self.report == "round":
+                # with relinking the smoother's estimate is reported: it holds the re-fused window
+                # (and atvfg's tdoa test on it); the round solution has this epoch's links untested
+                if self.report == "round" and self.relink == 0:
                     pos = self.p.copy()
                     if self.report_cov == "round":
                         pos_cov = np.linalg.inv(self._normal_equations(self.p)[0])
                     elif self.report_cov == "links":
                         # the split-CI bound (neighbour covariance × its links) without the
                         # commit weight, which only guards the smoother against feedback
-                        pos_cov = np.linalg.inv(self._info + Lam / self.commit_weight)
+                        pos_cov = np.linalg.inv(self._info + Lam / w)
             for o in self._nb:
                 res, cls = self._res_own.get(o, (float("nan"), int(LinkClass.H2_NORMAL)))
                 links.append(LinkInfo(o, LinkClass(cls), res, float(self._weights[o])))
