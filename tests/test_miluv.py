@@ -250,6 +250,29 @@ def test_heldout_cross_validation(converted):
     assert res[0]["rms_m"] != res[1]["rms_m"]  # the candidate setting reaches the estimator
 
 
+def test_heldout_cv_holds_out_the_transactions_passive_rows(converted, monkeypatch):
+    """A passive row overheard the held-out range's transaction (same time) and carries its error
+    in rdiff: the cross-validation removes it with the range (no leak), and only those rows."""
+    import dataclasses
+
+    import swarmnav.evaluation as ev
+    from swarmnav.calibration import heldout_anchor_cv
+    from swarmnav.estimators.registry import settings_for_dataset
+
+    ds, _ = converted
+    short = dataclasses.replace(ds, meta=ds.meta.model_copy(update={"duration_s": 10.0}))
+    seen = []
+    real = ev.run_algorithm
+    monkeypatch.setattr(ev, "run_algorithm", lambda part, *a, **k: seen.append(part) or real(part, *a, **k))
+    heldout_anchor_cv(short, 0, settings_for_dataset(short.meta), [{}], folds=2)
+    r, td = ds.table("ranges"), ds.table("tdoa")
+    for part in seen:
+        held_t = np.setdiff1d(r["t"], part.table("ranges")["t"])
+        kept = part.table("tdoa")["t"]
+        assert len(held_t) and not np.isin(kept, held_t).any()
+        assert len(kept) == int((~np.isin(td["t"], held_t)).sum()) and len(kept) < len(td["t"])
+
+
 def test_calibrate_dataset_cli(converted, tmp_path, capsys):
     """`swarmnav calibrate --dataset DIR --grid KEY=...`: a table and JSON; a bad grid is a clear error."""
     import dataclasses

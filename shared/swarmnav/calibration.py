@@ -76,7 +76,8 @@ def heldout_anchor_cv(ds: Dataset, seed: int, settings: dict, candidates: list[d
     """Truth-free cross-validation of estimator settings on a recording with fixed anchors.
 
     For each fold f of ``folds``, every ``folds``-th range to an anchor (offset f, in time order)
-    is removed from the dataset; ``algo`` runs on the rest with ``settings`` updated by each
+    is removed from the dataset, with the passive-listening rows of the same transactions (a
+    ``tdoa`` row at the range's time: its rdiff contains that range); ``algo`` runs on the rest with ``settings`` updated by each
     candidate; each held-out range is predicted from the estimate of its epoch (tag at
     pos + R·lever, the anchor's tag position) and scored by its error. Returns, per candidate, the
     RMS and median |error| over all folds (m) and the count — lower is a better model of the data,
@@ -100,7 +101,14 @@ def heldout_anchor_cv(ds: Dataset, seed: int, settings: dict, candidates: list[d
         for f in range(folds):
             held = np.zeros(len(r["t"]), bool)
             held[idx[f::folds]] = True
-            part = dataclasses.replace(ds, tables={**ds.tables, "ranges": {c: v[~held] for c, v in r.items()}})
+            tables = {**ds.tables, "ranges": {c: v[~held] for c, v in r.items()}}
+            if "tdoa" in ds.tables:
+                # a passive row overheard the same transaction (same time): its rdiff contains the
+                # held-out range's error (range_n), so it is held out too — else it leaks
+                td = ds.table("tdoa")
+                keep = ~np.isin(td["t"], r["t"][held])
+                tables["tdoa"] = {c: v[keep] for c, v in td.items()}
+            part = dataclasses.replace(ds, tables=tables)
             st = dict(settings)
             st.update(cand)  # and over the [estimation.graph] overrides, which win in tuned_settings
             st["graph"] = {**(st.get("graph") or {}), **cand}

@@ -50,6 +50,13 @@ Epoch k (driven by ``swarmnav.protocol``):
     solution, pos_cov = (P_loc⁻¹ + Λ_c / commit_weight)⁻¹ (``report_cov = "links"``: the split-CI
     bound, conservative), velocity/attitude from the smoother.
 
+**Relinked commit** (``relink_s`` > 0; off by default, on in configs/miluv.toml): instead of the
+one-shot commit, each epoch's cooperative links become one position factor on that epoch's pose and
+the factors of the last ``relink_s`` seconds are recomputed every epoch with the neighbours'
+*smoothed* positions (``NodeState.traj``) — block-Jacobi sweeps on the swarm's joint fixed-lag
+problem (``_relinked_commit``; weight ``relink_weight``, neighbour covariance ×
+``relink_cov_scale``); atvfg runs the double threshold on the window's smoothed tdoa residuals.
+
 **Double counting.** A neighbour's estimate already contains this node's information. Default
 remedy (``broadcast_cov = "local"``): in the commit a neighbour's broadcast covariance is multiplied
 by its number of links this epoch (split covariance intersection: each of its n links may carry
@@ -219,7 +226,7 @@ class GraphEstimator(NodeEstimator):
         relink_s = float(s.get("relink_s", 0.0))
         dt = float(meta.epoch_dt_s)
         self.relink = max(0, min(int(round(relink_s / dt)), int(self.lag / dt) - 2)) if relink_s > 0 else 0
-        self.relink_w = float(s.get("relink_weight", 0.6))
+        self.relink_w = float(s.get("relink_weight", 0.3))
         self.relink_cov = float(s.get("relink_cov_scale", 0.5))
         self.relink_detect = self.detect and bool(s.get("relink_tdoa_detection", True))
         self.relink_dl = float(s.get("delta_l_fallback_sigmas", 3.0))
