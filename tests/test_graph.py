@@ -574,7 +574,7 @@ def test_relinked_commit_exact_and_bounded(noiseless, algo):
 
 def test_relinked_tdoa_detection_drops_biased_rows(noiseless):
     """Relinking, range differences all biased by 0.3 m (60 σ): atvfg's double threshold on the
-    window's smoothed residuals (units of σ, Δl = 3) classifies them H0 and keeps the noiseless
+    window's smoothed residuals (units of their innovation σ, Δl = 3) classifies them H0 and keeps the noiseless
     error near zero; fg (Gaussian) is pulled away, and so is atvfg with the test switched off."""
     sc, ds = noiseless
     rm = lambda e: float(np.sqrt(np.mean(np.sum(e ** 2, 1))))  # noqa: E731

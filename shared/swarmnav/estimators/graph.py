@@ -55,7 +55,8 @@ one-shot commit, each epoch's cooperative links become one position factor on th
 the factors of the last ``relink_s`` seconds are recomputed every epoch with the neighbours'
 *smoothed* positions (``NodeState.traj``) — block-Jacobi sweeps on the swarm's joint fixed-lag
 problem (``_relinked_commit``; weight ``relink_weight``, neighbour covariance ×
-``relink_cov_scale``); atvfg runs the double threshold on the window's smoothed tdoa residuals.
+``relink_cov_scale``); atvfg runs the double threshold on the window's smoothed tdoa residuals
+(normalised by their innovation σ).
 
 **Double counting.** A neighbour's estimate already contains this node's information. Default
 remedy (``broadcast_cov = "local"``): in the commit a neighbour's broadcast covariance is multiplied
@@ -230,6 +231,9 @@ class GraphEstimator(NodeEstimator):
         self.relink_cov = float(s.get("relink_cov_scale", 0.5))
         self.relink_detect = self.detect and bool(s.get("relink_tdoa_detection", True))
         self.relink_dl = float(s.get("delta_l_fallback_sigmas", 3.0))
+        # the residuals' σ: "innovation" (row σ + the ends' position covariances along the
+        # gradient; cross-validated better) or "row" (the row's σ only)
+        self.relink_innov = str(s.get("relink_tdoa_sigma", "innovation")) == "innovation"
         imu = node.imu
         self.bias_sigmas = np.r_[[max(imu.accel_bias_sigma, 1e-4)] * 3, [max(imu.gyro_bias_sigma, 1e-6)] * 3]
         self._reset(init.t, init.pos, init.vel, init.quat, np.asarray(init.pos_sigma, float),
@@ -734,14 +738,22 @@ class GraphEstimator(NodeEstimator):
         est = self.smoother.calculateEstimate()
         return {h["k"]: est.atPose3(X(h["n"])).translation().copy() for h in self._rl if est.exists(X(h["n"]))}
 
-    def _tdoa_residuals(self, c: dict, P: np.ndarray) -> np.ndarray:
+    def _tdoa_residuals(self, c: dict, P: np.ndarray, C: np.ndarray | None = None,
+                        P_own: np.ndarray | None = None) -> np.ndarray:
         """|z − h| / σ of the cooperative tdoa rows of round cache ``c`` at positions P
-        (``c["nodes"]`` order; the own row is the own body origin)."""
+        (``c["nodes"]`` order; the own row is the own body origin). With covariances (``C`` per
+        node, ``P_own`` for this node) σ is the innovation's: σ² = σ_row² + Σ gᵀ·Cov·g over the
+        ends; else the row's σ."""
         me = P[c["idx"][self.uav]]
         out = []
         for ends, z, sig2 in c.get("tdoa", ()):
             pts = [me + x if kind == "self" else (P[x] + lev if kind == "peer" else x) for kind, x, lev in ends]
-            out.append(abs(z - tdoa_h(*pts)[0]) / np.sqrt(sig2))
+            h, *grads = tdoa_h(*pts)
+            var = sig2
+            if C is not None:
+                var += sum(g @ (P_own if kind == "self" else C[x]) @ g
+                           for (kind, x, _), g in zip(ends, grads) if kind != "fixed")
+            out.append(abs(z - h) / np.sqrt(var))
         return np.array(out, float)
 
     def _link_summary(self, h: dict, p_own: np.ndarray, P: np.ndarray, tdoa_w: np.ndarray):
@@ -770,12 +782,12 @@ class GraphEstimator(NodeEstimator):
         round 0). The swarm thereby runs block-Jacobi sweeps on its joint fixed-lag problem: a link
         fused when both ends knew little is re-fused once later anchors have refined them, as the
         centralised smoother does. For atvfg the window's tdoa links also get the double-threshold
-        test on these smoothed residuals (in units of each row's σ: Δl = ``delta_l_fallback_sigmas``,
-        Δh by 2-means over the window's residuals), where the filtered residuals were dominated by
-        state error. Measured on MILUV and on the dense paper swarm in docs/miluv.md "Sixth pass"."""
+        test on these smoothed residuals, normalised by the innovation σ (the row's σ and the ends'
+        position covariances at that epoch, ``relink_tdoa_sigma``): Δl = ``delta_l_fallback_sigmas``,
+        Δh by 2-means over the window's normalised residuals. Measured on MILUV and on the dense paper swarm in docs/miluv.md "Sixth pass"."""
         est = self.smoother.calculateEstimate()
         cur = {"k": self.k, "n": self.n, "c": self._cache, "w": dict(self._weights), "tw": np.array(self._tdoa_w, float),
-               "P": self._P.copy(), "C": self._C.copy(), "fidx": None}
+               "P": self._P.copy(), "C": self._C.copy(), "Pown": self.P_loc.copy(), "fidx": None}
         self._rl = [h for h in self._rl if h["k"] > self.k - self.relink] + [cur]
         jobs = []
         for h in self._rl:
@@ -788,7 +800,9 @@ class GraphEstimator(NodeEstimator):
                     P[i] = p_own
                 elif h is not cur and h["k"] in self._peer_traj.get(u, {}):
                     P[i] = self._peer_traj[u][h["k"]]
-            jobs.append((h, p_own, P, self._tdoa_residuals(h["c"], P) if self.relink_detect else None))
+            inn = self.relink_innov
+            jobs.append((h, p_own, P, self._tdoa_residuals(h["c"], P, h["C"] if inn else None, h["Pown"] if inn else None)
+                         if self.relink_detect else None))
         dh = None
         if self.relink_detect:
             pool = np.concatenate([r for *_, r in jobs] + [np.zeros(0)])
