@@ -180,7 +180,7 @@ class CentralEstimator(SwarmEstimator):
         self.drag_mu0 = float(s.get("drag_mu_prior", 0.5))
         self.drag_mu_sigma = float(s.get("drag_mu_prior_sigma", 0.5))
         self.drag_sigma_scale = float(s.get("drag_sigma_scale", DRAG_SIGMA_SCALE))
-        self.tdoa_scale = float(s.get("tdoa_sigma_scale", 1.0))
+        self.tdoa_scale = float(s.get("tdoa_sigma_scale", 1.0))  # passive rows σ × this, as graph.py
         self._drag_started: set[int] = set()
         rest = float(s.get("rest_max_speed_mps", 0.1))  # graph.py's initial-rest test
         self._rest0 = {u: float(inits[u].vel_sigma) <= rest and float(np.linalg.norm(inits[u].vel)) <= rest

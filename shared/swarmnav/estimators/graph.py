@@ -220,10 +220,11 @@ class GraphEstimator(NodeEstimator):
         # Gaussian, or atvfg's double-threshold test with tdoa_detection: _tdoa_weights)
         self.use_tdoa = bool(s.get("use_tdoa", True))
         self.tdoa_detection = bool(s.get("tdoa_detection", False))
+        # the passive rows' σ × this (own rows and cooperative links; central likewise)
         self.tdoa_scale = float(s.get("tdoa_sigma_scale", 1.0))
         # relinked commit (_relinked_commit): window in epochs (0 = off; kept inside the smoother's
         # lag), weight, neighbour-covariance scale, and atvfg's double threshold on the window's
-        # tdoa residuals in units of each row's sigma (Δl = delta_l_fallback_sigmas)
+        # normalised tdoa residuals (Δl = delta_l_fallback_sigmas); configs/miluv.toml turns it on
         relink_s = float(s.get("relink_s", 0.0))
         dt = float(meta.epoch_dt_s)
         self.relink = max(0, min(int(round(relink_s / dt)), int(self.lag / dt) - 2)) if relink_s > 0 else 0
@@ -784,7 +785,8 @@ class GraphEstimator(NodeEstimator):
         centralised smoother does. For atvfg the window's tdoa links also get the double-threshold
         test on these smoothed residuals, normalised by the innovation σ (the row's σ and the ends'
         position covariances at that epoch, ``relink_tdoa_sigma``): Δl = ``delta_l_fallback_sigmas``,
-        Δh by 2-means over the window's normalised residuals. Measured on MILUV and on the dense paper swarm in docs/miluv.md "Sixth pass"."""
+        Δh by 2-means over the window's normalised residuals. Measured in docs/estimators.md
+        "Relinked commit" and docs/miluv.md "Sixth pass"."""
         est = self.smoother.calculateEstimate()
         cur = {"k": self.k, "n": self.n, "c": self._cache, "w": dict(self._weights), "tw": np.array(self._tdoa_w, float),
                "P": self._P.copy(), "C": self._C.copy(), "Pown": self.P_loc.copy(), "fidx": None}
