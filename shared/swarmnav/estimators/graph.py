@@ -224,14 +224,15 @@ class GraphEstimator(NodeEstimator):
         self.tdoa_scale = float(s.get("tdoa_sigma_scale", 1.0))
         # relinked commit (_relinked_commit): window in epochs (0 = off; kept inside the smoother's
         # lag), weight, neighbour-covariance scale, and atvfg's double threshold on the window's
-        # normalised tdoa residuals (Δl = delta_l_fallback_sigmas); configs/miluv.toml turns it on
+        # normalised tdoa residuals (Δl = relink_tdoa_delta_l, default delta_l_fallback_sigmas, in
+        # innovation σ); configs/miluv.toml turns it on
         relink_s = float(s.get("relink_s", 0.0))
         dt = float(meta.epoch_dt_s)
         self.relink = max(0, min(int(round(relink_s / dt)), int(self.lag / dt) - 2)) if relink_s > 0 else 0
         self.relink_w = float(s.get("relink_weight", 0.3))
         self.relink_cov = float(s.get("relink_cov_scale", 0.5))
         self.relink_detect = self.detect and bool(s.get("relink_tdoa_detection", True))
-        self.relink_dl = float(s.get("delta_l_fallback_sigmas", 3.0))
+        self.relink_dl = float(s.get("relink_tdoa_delta_l", s.get("delta_l_fallback_sigmas", 3.0)))
         # the residuals' σ: "innovation" (row σ + the ends' position covariances along the
         # gradient; cross-validated better) or "row" (the row's σ only)
         self.relink_innov = str(s.get("relink_tdoa_sigma", "innovation")) == "innovation"
