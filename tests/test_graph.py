@@ -585,3 +585,11 @@ def test_relinked_tdoa_detection_drops_biased_rows(noiseless):
     off = rm(_run(biased, AtvfgEstimator, 3, _settings(sc, relink_tdoa_detection=False, **s))[0])
     assert atvfg < 0.05, atvfg
     assert fg > 2 * atvfg + 0.02 and off > 2 * atvfg + 0.02, (atvfg, fg, off)
+
+
+def test_relink_window_too_short_is_an_error(noiseless):
+    sc, ds = noiseless
+    inits = initial_states(ds, 3)
+    u = ds.meta.uav_ids()[0]
+    with pytest.raises(ValueError, match="relink_s"):
+        FgEstimator(u, ds.meta, _settings(sc, relink_s=0.2 * ds.meta.epoch_dt_s), inits[u])

@@ -34,6 +34,16 @@ def test_state_float64_exact():
     assert list(s2.traj) == sorted(s.traj) and all(np.array_equal(s2.traj[k], s.traj[k]) for k in s.traj)
 
 
+def test_state_json_traj_epochs_checked():
+    """The JSON state (queryable history replies) checks the relink window's epochs like the frame."""
+    good = M.state_to_msg(_state(np.random.default_rng(0))).model_dump(mode="json")
+    assert M.decode(M.StateMsg, json.dumps(good).encode(), uav=3).traj
+    for epoch in (6, -1):  # after the state's epoch k = 5, negative
+        bad = {**good, "traj": {str(epoch): [0.0, 0.0, 0.0]}}
+        with pytest.raises(M.WireError):
+            M.decode(M.StateMsg, json.dumps(bad).encode(), uav=3)
+
+
 def test_extreme_floats_exact():
     rng = np.random.default_rng(1)
     x = rng.normal(size=5000) * 10.0 ** rng.integers(-300, 300, 5000)

@@ -251,8 +251,9 @@ def test_heldout_cross_validation(converted):
 
 
 def test_heldout_cv_holds_out_the_transactions_passive_rows(converted, monkeypatch):
-    """A passive row overheard the held-out range's transaction (same time) and carries its error
-    in rdiff: the cross-validation removes it with the range (no leak), and only those rows."""
+    """A passive row overheard the held-out range's transaction (same time, same two tags) and
+    carries its error in rdiff: the cross-validation removes it with the range (no leak), and only
+    those rows."""
     import dataclasses
 
     import swarmnav.evaluation as ev
@@ -266,11 +267,14 @@ def test_heldout_cv_holds_out_the_transactions_passive_rows(converted, monkeypat
     monkeypatch.setattr(ev, "run_algorithm", lambda part, *a, **k: seen.append(part) or real(part, *a, **k))
     heldout_anchor_cv(short, 0, settings_for_dataset(short.meta), [{}], folds=2)
     r, td = ds.table("ranges"), ds.table("tdoa")
+    key = lambda t, a, b: (float(t), frozenset((int(a), int(b))))  # noqa: E731
     for part in seen:
-        held_t = np.setdiff1d(r["t"], part.table("ranges")["t"])
-        kept = part.table("tdoa")["t"]
-        assert len(held_t) and not np.isin(kept, held_t).any()
-        assert len(kept) == int((~np.isin(td["t"], held_t)).sum()) and len(kept) < len(td["t"])
+        pr = part.table("ranges")
+        held = {key(*x) for x in zip(r["t"], r["tag_a"], r["tag_b"])} - {key(*x) for x in zip(pr["t"], pr["tag_a"], pr["tag_b"])}
+        kept = {key(*x) for x in zip(*(part.table("tdoa")[c] for c in ("t", "tag_init", "tag_resp")))}
+        every = [key(*x) for x in zip(td["t"], td["tag_init"], td["tag_resp"])]
+        assert held and not kept & held
+        assert len(part.table("tdoa")["t"]) == sum(k not in held for k in every) < len(every)
 
 
 def test_calibrate_dataset_cli(converted, tmp_path, capsys):
@@ -317,7 +321,8 @@ def test_cli(tmp_path):
     st = settings_for_dataset(meta)
     assert st["graph"]["relink_s"] == 3.0 and st["fixed_lag_s"] == 5.0 and st["convergence_m"] == 0.01  # unset: default
     assert main(["import-miluv", str(SRC), "--out", str(tmp_path / "plain"), "--estimation", "none"]) == 0
-    assert "estimation" not in Dataset.read(tmp_path / "plain").meta.config
+    plain = Dataset.read(tmp_path / "plain").meta
+    assert "estimation" not in plain.config and plain.config_sha256 != meta.config_sha256  # in the provenance
     bad = tmp_path / "bad.toml"
     bad.write_text("[estimation]\nrounds = 0\n")
     assert main(["import-miluv", str(SRC), "--out", str(tmp_path / "y"), "--estimation", str(bad)]) == 2

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import json
 import math
 import re
 from pathlib import Path
@@ -557,6 +558,9 @@ def convert(src: str | Path, epoch_dt: float = 0.1, estimation: str | Path | Non
     for f in sorted(set(used_files)):
         h.update(str(f.relative_to(src)).encode() + b"\0")
         h.update(f.read_bytes())
+    est_table = load_estimation(estimation) if estimation is not None else None
+    if est_table is not None:  # the embedded tuning is part of the dataset's provenance
+        h.update(json.dumps(est_table, sort_keys=True).encode())
     meta = DatasetMeta(
         name=f"miluv/{src.name}",
         source="recorded",
@@ -564,7 +568,7 @@ def convert(src: str | Path, epoch_dt: float = 0.1, estimation: str | Path | Non
         config={"importer": "swarmnav import-miluv", "experiment": dict(sorted(exp.items())), "imu_source": "imu_px4.csv",
                 "frame": "Vicon world (z up): x->E, y->N, z->U; no geodetic origin",
                 "anchor_node_id": f"{ANCHOR_NODE_OFFSET} + MILUV anchor id", "uav_node_id": "N for ifo00N",
-                **({"estimation": load_estimation(estimation)} if estimation is not None else {})},
+                **({"estimation": est_table} if est_table is not None else {})},
         config_sha256=h.hexdigest(),
         origin=None,
         t_start=t_start,

@@ -77,7 +77,7 @@ def heldout_anchor_cv(ds: Dataset, seed: int, settings: dict, candidates: list[d
 
     For each fold f of ``folds``, every ``folds``-th range to an anchor (offset f, in time order)
     is removed from the dataset, with the passive-listening rows of the same transactions (a
-    ``tdoa`` row at the range's time: its rdiff contains that range); ``algo`` runs on the rest with ``settings`` updated by each
+    ``tdoa`` row at the range's time between the same two tags: its rdiff contains that range); ``algo`` runs on the rest with ``settings`` updated by each
     candidate; each held-out range is predicted from the estimate of its epoch (tag at
     pos + R·lever, the anchor's tag position) and scored by its error. Returns, per candidate, the
     RMS and median |error| over all folds (m) and the count — lower is a better model of the data,
@@ -106,7 +106,10 @@ def heldout_anchor_cv(ds: Dataset, seed: int, settings: dict, candidates: list[d
                 # a passive row overheard the same transaction (same time): its rdiff contains the
                 # held-out range's error (range_n), so it is held out too — else it leaks
                 td = ds.table("tdoa")
-                keep = ~np.isin(td["t"], r["t"][held])
+                gone = {(float(t), frozenset((int(a), int(b))))
+                        for t, a, b in zip(r["t"][held], r["tag_a"][held], r["tag_b"][held])}
+                keep = np.array([(float(t), frozenset((int(a), int(b)))) not in gone
+                                 for t, a, b in zip(td["t"], td["tag_init"], td["tag_resp"])], bool)
                 tables["tdoa"] = {c: v[keep] for c, v in td.items()}
             part = dataclasses.replace(ds, tables=tables)
             st = dict(settings)

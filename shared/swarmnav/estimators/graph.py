@@ -229,6 +229,9 @@ class GraphEstimator(NodeEstimator):
         relink_s = float(s.get("relink_s", 0.0))
         dt = float(meta.epoch_dt_s)
         self.relink = max(0, min(int(round(relink_s / dt)), int(self.lag / dt) - 2)) if relink_s > 0 else 0
+        if relink_s > 0 and self.relink < 1:
+            raise ValueError(f"relink_s = {relink_s} s: no relink window with epochs of {dt} s and fixed_lag_s "
+                             f"{self.lag} s (needs relink_s >= epoch_dt/2 and fixed_lag_s >= 3 epochs)")
         self.relink_w = float(s.get("relink_weight", 0.3))
         self.relink_cov = float(s.get("relink_cov_scale", 0.5))
         self.relink_detect = self.detect and bool(s.get("relink_tdoa_detection", True))
@@ -753,8 +756,14 @@ class GraphEstimator(NodeEstimator):
             h, *grads = tdoa_h(*pts)
             var = sig2
             if C is not None:
-                var += sum(g @ (P_own if kind == "self" else C[x]) @ g
-                           for (kind, x, _), g in zip(ends, grads) if kind != "fixed")
+                # ends on the same body (two own tags, a neighbour's two tags) move together: their
+                # gradients are summed before the quadratic form
+                body: dict = {}
+                for (kind, x, _), g in zip(ends, grads):
+                    if kind != "fixed":
+                        key = "self" if kind == "self" else int(x)
+                        body[key] = body.get(key, 0.0) + g
+                var += sum(g @ (P_own if key == "self" else C[key]) @ g for key, g in body.items())
             out.append(abs(z - h) / np.sqrt(var))
         return np.array(out, float)
 
@@ -812,19 +821,20 @@ class GraphEstimator(NodeEstimator):
             if len(pool):
                 dh = det.upper_threshold(pool, self.relink_dl, self.floor_factor, self.kmeans_backend, self.ceil_factor)
         g = gtsam.NonlinearFactorGraph()
-        remove, added = [], []
+        added = []
         for h, p_own, P, res in jobs:
             tw = h["tw"]
             if dh is not None and len(res):
                 tw = tw * det.classify_and_weigh(res, self.relink_dl, dh, self.cap_h1)[1]
-            if h["fidx"] is not None:
-                remove.append(h["fidx"])
-                h["fidx"] = None
             f = self._link_summary(h, p_own, P, tw)
             if f is not None:
                 g.add(f)
                 added.append(h)
+        # indices are updated only once the smoother has taken the removal and the new factors
+        remove = [h["fidx"] for h, *_ in jobs if h["fidx"] is not None]
         self.smoother.update(g, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap(), remove)
+        for h, *_ in jobs:
+            h["fidx"] = None
         for h, i in zip(added, self.smoother.getISAM2Result().getNewFactorsIndices()):
             h["fidx"] = int(i)
         self._read_estimate()
@@ -908,12 +918,16 @@ class GraphEstimator(NodeEstimator):
                 g.add(gtsam.GPSFactor(X(self.n), z, gtsam.noiseModel.Gaussian.Information(Lr)))
                 self.smoother.update(g, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
                 self._read_estimate()
-            if committed:
-                w = self.commit_weight if self.relink == 0 else 1.0
+            if committed and self.relink > 0:
+                # relinking reports the smoother's estimate: its marginal covariance (ENU)
+                Rm = self.pose.rotation().matrix()
+                pos_cov = Rm @ self.smoother.marginalCovariance(X(self.n))[3:, 3:] @ Rm.T
+            elif committed:
+                w = self.commit_weight
                 pos_cov = np.linalg.inv(self._info + Lam)
-                # with relinking the smoother's estimate is reported: it holds the re-fused window
-                # (and atvfg's tdoa test on it); the round solution has this epoch's links untested
-                if self.report == "round" and self.relink == 0:
+                # (with relinking the smoother's estimate is reported, above: it holds the re-fused
+                # window and atvfg's tdoa test on it; the round solution has the epoch's links untested)
+                if self.report == "round":
                     pos = self.p.copy()
                     if self.report_cov == "round":
                         pos_cov = np.linalg.inv(self._normal_equations(self.p)[0])

@@ -217,6 +217,12 @@ class StateMsg(UavMsg):
             raise ValueError("attitude quaternion not of unit norm")
         return q
 
+    @model_validator(mode="after")
+    def _traj_epochs(self):
+        if any(e < 0 or e > self.k for e in self.traj):
+            raise ValueError(f"traj epochs must lie in [0, k = {self.k}]")
+        return self
+
     @field_validator("bearings")
     @classmethod
     def _bearings(cls, b: dict) -> dict:
