@@ -535,19 +535,8 @@ def test_relinked_commit_exact_and_bounded(noiseless, algo):
     tr = ds.table("truth")
     err, counts = [], []
     for k in range(1, ds.meta.n_epochs() + 1):
-        gens = {u: node_epoch(nodes[u], sl.epoch(k, u), s["rounds"], s["convergence_m"]) for u in uavs}
-        states = {u: next(g) for u, g in gens.items()}
-        round0 = dict(states)
-        out = {}
-        while gens:  # the in-process transport's lock-step rounds (protocol.run_epoch_in_process)
-            snap = dict(states)
-            for u, g in list(gens.items()):
-                try:
-                    states[u] = g.send({j: x for j, x in snap.items() if j != u})
-                except StopIteration as stop:
-                    out[u] = stop.value
-                    del gens[u]
-                    states.pop(u, None)
+        out = run_epoch_in_process({u: node_epoch(nodes[u], sl.epoch(k, u), s["rounds"], s["convergence_m"])
+                                    for u in uavs})
         t = ds.meta.epoch_time(k)
         for u, e in out.items():
             i = np.flatnonzero((tr["node"] == u) & (np.abs(tr["t"] - t) < 1e-6))[0]
@@ -568,7 +557,7 @@ def test_relinked_commit_exact_and_bounded(noiseless, algo):
     assert rmse < 0.05, rmse
     K = len(counts)
     assert max(counts[K // 2:]) <= max(counts[:K // 2]) + 5, counts  # bounded by the fixed lag
-    traj = round0[uavs[1]].traj  # the last epoch's round-0 state of another UAV
+    traj = nodes[uavs[0]]._peer_traj[uavs[1]]  # as received in another UAV's last round-0 state
     assert sorted(traj) == [K - 3, K - 2, K - 1], sorted(traj)
 
 
