@@ -465,6 +465,10 @@ class GraphEstimator(NodeEstimator):
             (own if all(o == self.uav or o in self.anchors for o in ends) else coop).append(i)
         return own, coop
 
+    def _tdoa_sigma(self, inp: EpochInput, i: int) -> float:
+        """σ (m) of tdoa row i: the row's (else the ranging σ) × ``tdoa_sigma_scale``."""
+        return self.tdoa_scale * (float(inp.tdoa_sigma[i]) if inp.tdoa_sigma[i] > 0 else self.uwb_sigma)
+
     def _tdoa_ends(self, inp: EpochInput, i: int) -> tuple[tuple[int, int], ...]:
         """(node, tag) of listener, initiator, responder of tdoa row i."""
         return ((int(inp.tdoa_listener[i]), int(inp.tdoa_tag[i])), (int(inp.tdoa_init[i]), int(inp.tdoa_tag_init[i])),
@@ -485,7 +489,7 @@ class GraphEstimator(NodeEstimator):
                 # anchor end moves by +v·(t − t_r) (as for anchor ranges)
                 dt = float(inp.t) - float(inp.tdoa_t[i])
                 ends = [(k, x) if k is not None else (k, x + dt * self._v_pred) for k, x in ends]
-            sig = self.tdoa_scale * (float(inp.tdoa_sigma[i]) if inp.tdoa_sigma[i] > 0 else self.uwb_sigma)
+            sig = self._tdoa_sigma(inp, i)
             g.add(tdoa_factor(ends, float(inp.tdoa_m[i]), self._anchor_noise(gtsam.noiseModel.Isotropic.Sigma(1, sig))))
 
     def _still(self, inp: EpochInput) -> bool:
@@ -670,8 +674,7 @@ class GraphEstimator(NodeEstimator):
                     else:
                         break
                 else:
-                    sg = self.tdoa_scale * (float(inp.tdoa_sigma[i]) if inp.tdoa_sigma[i] > 0 else self.uwb_sigma)
-                    rows_t.append((ends, float(inp.tdoa_m[i]), sg * sg))
+                    rows_t.append((ends, float(inp.tdoa_m[i]), self._tdoa_sigma(inp, i) ** 2))
             if rows_t:
                 c["tdoa"] = rows_t
         self._cache = c
@@ -686,11 +689,7 @@ class GraphEstimator(NodeEstimator):
         w = np.ones(len(rows))
         if not (self.detect and self.tdoa_detection and rows):
             return w
-        res = np.empty(len(rows))
-        me = P[c["idx"][self.uav]]
-        for j, (ends, z, _) in enumerate(rows):
-            pts = [me + x if kind == "self" else (P[x] + lev if kind == "peer" else x) for kind, x, lev in ends]
-            res[j] = abs(z - tdoa_h(*pts)[0])
+        res = self._tdoa_residuals(c, P, normalise=False)
         dh = self.delta_h
         if dh is None:
             dh = det.upper_threshold(self.window.values(np.zeros(0)), self.delta_l, self.floor_factor,
@@ -744,11 +743,11 @@ class GraphEstimator(NodeEstimator):
         return {h["k"]: est.atPose3(X(h["n"])).translation().copy() for h in self._rl if est.exists(X(h["n"]))}
 
     def _tdoa_residuals(self, c: dict, P: np.ndarray, C: np.ndarray | None = None,
-                        P_own: np.ndarray | None = None) -> np.ndarray:
+                        P_own: np.ndarray | None = None, normalise: bool = True) -> np.ndarray:
         """|z − h| / σ of the cooperative tdoa rows of round cache ``c`` at positions P
         (``c["nodes"]`` order; the own row is the own body origin). With covariances (``C`` per
         node, ``P_own`` for this node) σ is the innovation's: σ² = σ_row² + Σ gᵀ·Cov·g over the
-        ends; else the row's σ."""
+        ends; else the row's σ. ``normalise`` False: |z − h| in metres."""
         me = P[c["idx"][self.uav]]
         out = []
         for ends, z, sig2 in c.get("tdoa", ()):
@@ -764,7 +763,7 @@ class GraphEstimator(NodeEstimator):
                         key = "self" if kind == "self" else int(x)
                         body[key] = body.get(key, 0.0) + g
                 var += sum(g @ (P_own if key == "self" else C[key]) @ g for key, g in body.items())
-            out.append(abs(z - h) / np.sqrt(var))
+            out.append(abs(z - h) / np.sqrt(var) if normalise else abs(z - h))
         return np.array(out, float)
 
     def _link_summary(self, h: dict, p_own: np.ndarray, P: np.ndarray, tdoa_w: np.ndarray):
