@@ -291,6 +291,10 @@ def test_calibrate_dataset_cli(converted, tmp_path, capsys):
     out = json.loads((tmp_path / "cv.json").read_text())
     assert [c["settings"] for c in out["candidates"]] == [{"drag_sigma_scale": 1.0}, {"drag_sigma_scale": 3.0}]
     assert out["best"] in [c["settings"] for c in out["candidates"]] and "lowest held-out RMS" in capsys.readouterr().out
+    assert out["algo"] == "fg"
+    assert main(["calibrate", "--dataset", str(tmp_path / "ds"), "--grid", "relink_weight=0.3", "--folds", "2",
+                 "--algo", "atvfg", "--out", str(tmp_path / "cv2.json")]) == 0
+    assert json.loads((tmp_path / "cv2.json").read_text())["algo"] == "atvfg"
     assert main(["calibrate", "--dataset", str(tmp_path / "ds"), "--grid", "drag_sigma_scale"]) != 0
     assert "expected KEY=V1,V2" in capsys.readouterr().err
 

@@ -15,11 +15,12 @@ converged range residuals |d_ij - |p_i - p_j|| as JSON (key "delta_l_m"). `atvfg
 `estimation.delta_l_file`; without it Δl = estimation.delta_l_fallback_sigmas × UWB sigma.
 
 --dataset: truth-free K-fold cross-validation of one estimator setting on a recording with fixed
-anchors: every K-th anchor range is held out, `fg` runs on the rest with each candidate value
-(--grid KEY=V1,V2,..., a graph.py settings key), and the held-out ranges are predicted from the
-estimates. Prints RMS and median prediction error per candidate (lower = the better model of the
-data) and writes them as JSON with --out. This is how the defaults of drag_sigma_scale and
-commit_weight were chosen for sparse real data (docs/miluv.md, "Fifth pass").
+anchors: every K-th anchor range is held out (with the passive-listening rows of the same
+transactions), `fg` (or --algo atvfg) runs on the rest with each candidate value (--grid
+KEY=V1,V2,..., a graph.py settings key), and the held-out ranges are predicted from the estimates.
+Prints RMS and median prediction error per candidate (lower = the better model of the data) and
+writes them as JSON with --out. This is how drag_sigma_scale and the settings of
+configs/miluv.toml were chosen for sparse real data (docs/miluv.md, "Fifth pass", "Sixth pass").
 
 examples:
   swarmnav calibrate --config configs/paper_faultfree.toml --out configs/delta_l.json
@@ -35,6 +36,8 @@ def add_arguments(p) -> None:
     p.add_argument("--grid", default="drag_sigma_scale=1,1.5,2,3", metavar="KEY=V1,V2",
                    help="--dataset: the setting and its candidate values (default drag_sigma_scale=1,1.5,2,3)")
     p.add_argument("--folds", type=int, default=4, help="--dataset: number of folds (default 4)")
+    p.add_argument("--algo", choices=("fg", "atvfg"), default="fg",
+                   help="--dataset: the estimator run on each fold (default fg; atvfg for its own settings)")
     p.add_argument("--seed", type=int, default=None, metavar="N", help="seed (default: the config's)")
     p.add_argument("--warmup-s", type=float, default=20.0, help="seconds skipped before collecting residuals")
     p.add_argument("--window-s", type=float, default=60.0, help="seconds of residuals collected")
@@ -103,7 +106,7 @@ def _cross_validate(args) -> int:
 
     try:
         res = heldout_anchor_cv(ds, seed, settings_for_dataset(ds.meta), [{key: x} for x in values],
-                                args.folds, progress=progress)
+                                args.folds, algo=args.algo, progress=progress)
     except ValueError as e:
         raise ConfigError(f"{args.dataset}: {e}") from None
     print()
@@ -114,9 +117,9 @@ def _cross_validate(args) -> int:
         print(f"swarmnav calibrate: warning: every {key} value gave the same result — is {key!r} a graph "
               "estimator settings key (docs/estimators.md)?")
     best = min(res, key=lambda r: r["rms_m"])
-    print(f"lowest held-out RMS: {key} = {best['settings'][key]:g} ({n} fg runs, {time.perf_counter() - t0:.0f} s)")
+    print(f"lowest held-out RMS: {key} = {best['settings'][key]:g} ({n} {args.algo} runs, {time.perf_counter() - t0:.0f} s)")
     if args.out:
-        out = {"schema": "swarmnav.cv/1", "dataset": ds.meta.name, "algo": "fg", "folds": args.folds, "seed": seed,
+        out = {"schema": "swarmnav.cv/1", "dataset": ds.meta.name, "algo": args.algo, "folds": args.folds, "seed": seed,
                "score": "held-out anchor-range prediction error (truth-free)", "candidates": res,
                "best": best["settings"]}
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -77,8 +77,8 @@ def heldout_anchor_cv(ds: Dataset, seed: int, settings: dict, candidates: list[d
 
     For each fold f of ``folds``, every ``folds``-th range to an anchor (offset f, in time order)
     is removed from the dataset, with the passive-listening rows of the same transactions (a
-    ``tdoa`` row at the range's time between the same two tags: its rdiff contains that range); ``algo`` runs on the rest with ``settings`` updated by each
-    candidate; each held-out range is predicted from the estimate of its epoch (tag at
+    ``tdoa`` row at the range's time between the same two tags: its rdiff contains that range);
+    ``algo`` runs on the rest with ``settings`` updated by each candidate; each held-out range is predicted from the estimate of its epoch (tag at
     pos + R·lever, the anchor's tag position) and scored by its error. Returns, per candidate, the
     RMS and median |error| over all folds (m) and the count — lower is a better model of the data,
     and no truth is used. ``progress(i, n)`` is called after each run.
