@@ -120,9 +120,9 @@ def _tdoa_rows(ds, offset_m, kind, err_label=None):
     return dataclasses.replace(ds, tables={**ds.tables, "tdoa": tab})
 
 
-def _central_rmse(ds, K=20):
+def _central_rmse(ds, K=20, **settings):
     sl, inits = EpochSlicer(ds), initial_states(ds, 1)
-    c = CentralEstimator(ds.meta, {"central_use_rel": False}, inits)
+    c = CentralEstimator(ds.meta, {"central_use_rel": False, **settings}, inits)
     tr = ds.table("truth")
     err = []
     for k in range(1, K + 1):
@@ -143,3 +143,11 @@ def test_central_uses_tdoa_and_drops_labelled_rows(smoke):
     assert exact < 0.9 * base, (base, exact)
     assert labelled == base
     assert unlabelled > 1.2 * base, (base, unlabelled)
+
+
+def test_central_tdoa_offset(smoke):
+    """``tdoa_offset_m`` is subtracted from every rdiff: unlabelled rows 2 m long with the matching
+    offset give the exact rows' result (to rounding)."""
+    exact = _central_rmse(_tdoa_rows(smoke, 0.0, FaultKind.NONE))
+    shifted = _central_rmse(_tdoa_rows(smoke, 2.0, FaultKind.NONE, err_label=0.0), tdoa_offset_m=2.0)
+    assert abs(shifted - exact) < 1e-3 * exact, (exact, shifted)

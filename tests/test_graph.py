@@ -486,6 +486,22 @@ def test_tdoa_links_exact_and_used(noiseless):
     assert rm(kept) > 2 * rm(dropped) + 0.02, (rm(dropped), rm(kept))  # default: Gaussian, used
 
 
+def test_tdoa_offset_removed_from_every_row(noiseless):
+    """``tdoa_offset_m`` is subtracted from every rdiff: own rows (ins) biased by 0.5 m and
+    cooperative links biased by 0.3 m (fg, one-shot and relinked commit) keep the noiseless error
+    near zero with the matching offset (the same rows pull the estimate away without it:
+    test_own_tdoa_rows_on_the_epoch_pose, test_tdoa_links_exact_and_used)."""
+    sc, ds = noiseless
+    rm = lambda e: float(np.sqrt(np.mean(np.sum(e ** 2, 1))))  # noqa: E731
+    own = rm(_run(_with_anchor_tdoa(ds, 0.5), InsEstimator, 3, _settings(sc, anchor_kernel_k=1e9, tdoa_offset_m=0.5))[0])
+    coop = rm(_run(_with_tdoa(ds, 0.3), FgEstimator, 3, _settings(sc, tdoa_offset_m=0.3))[0])
+    relinked = rm(_run(_with_tdoa(ds, 0.3), FgEstimator, 3,
+                       _settings(sc, tdoa_offset_m=0.3, relink_s=3 * ds.meta.epoch_dt_s))[0])
+    wrong = rm(_run(_with_tdoa(ds, 0.3), FgEstimator, 3, _settings(sc, tdoa_offset_m=-0.3))[0])
+    assert own < 0.02 and coop < 0.05 and relinked < 0.05, (own, coop, relinked)
+    assert wrong > 2 * coop + 0.02, (coop, wrong)
+
+
 @pytest.mark.parametrize("algo", ["fg", "atvfg"])
 def test_neighbour_tag_lever_arms_placed_with_broadcast_attitude(noiseless, algo):
     """Tags 0.5 m off the body origin (alternating sides), ranges between the tags (exact): the node places its own

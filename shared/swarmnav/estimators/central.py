@@ -181,6 +181,7 @@ class CentralEstimator(SwarmEstimator):
         self.drag_mu_sigma = float(s.get("drag_mu_prior_sigma", 0.5))
         self.drag_sigma_scale = float(s.get("drag_sigma_scale", DRAG_SIGMA_SCALE))
         self.tdoa_scale = float(s.get("tdoa_sigma_scale", 1.0))  # passive rows σ × this, as graph.py
+        self.tdoa_offset = float(s.get("tdoa_offset_m", 0.0))  # subtracted from every rdiff (m), as graph.py
         self._drag_started: set[int] = set()
         rest = float(s.get("rest_max_speed_mps", 0.1))  # graph.py's initial-rest test
         self._rest0 = {u: float(inits[u].vel_sigma) <= rest and float(np.linalg.norm(inits[u].vel)) <= rest
@@ -335,4 +336,4 @@ class CentralEstimator(SwarmEstimator):
                 if all(key is None for key, _ in ends):
                     continue  # every tag fixed: nothing to estimate
                 sig = self.tdoa_scale * (float(lab["sigma"][i]) if lab["sigma"][i] > 0 else self.meta.uwb_sigma_m)
-                g.add(tdoa_factor(ends, float(lab["rdiff"][i]), gtsam.noiseModel.Isotropic.Sigma(1, sig)))
+                g.add(tdoa_factor(ends, float(lab["rdiff"][i]) - self.tdoa_offset, gtsam.noiseModel.Isotropic.Sigma(1, sig)))

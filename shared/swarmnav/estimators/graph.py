@@ -222,6 +222,8 @@ class GraphEstimator(NodeEstimator):
         self.tdoa_detection = bool(s.get("tdoa_detection", False))
         # the passive rows' σ × this (own rows and cooperative links; central likewise)
         self.tdoa_scale = float(s.get("tdoa_sigma_scale", 1.0))
+        # a constant offset (m) of the passive path, subtracted from every rdiff (central likewise)
+        self.tdoa_offset = float(s.get("tdoa_offset_m", 0.0))
         # relinked commit (_relinked_commit): window in epochs (0 = off; kept inside the smoother's
         # lag), weight, neighbour-covariance scale, and atvfg's double threshold on the window's
         # normalised tdoa residuals (Δl = relink_tdoa_delta_l, default delta_l_fallback_sigmas, in
@@ -469,6 +471,10 @@ class GraphEstimator(NodeEstimator):
         """σ (m) of tdoa row i: the row's (else the ranging σ) × ``tdoa_sigma_scale``."""
         return self.tdoa_scale * (float(inp.tdoa_sigma[i]) if inp.tdoa_sigma[i] > 0 else self.uwb_sigma)
 
+    def _tdoa_value(self, inp: EpochInput, i: int) -> float:
+        """Measured rdiff (m) of tdoa row i less the passive path's offset ``tdoa_offset_m``."""
+        return float(inp.tdoa_m[i]) - self.tdoa_offset
+
     def _tdoa_ends(self, inp: EpochInput, i: int) -> tuple[tuple[int, int], ...]:
         """(node, tag) of listener, initiator, responder of tdoa row i."""
         return ((int(inp.tdoa_listener[i]), int(inp.tdoa_tag[i])), (int(inp.tdoa_init[i]), int(inp.tdoa_tag_init[i])),
@@ -490,7 +496,7 @@ class GraphEstimator(NodeEstimator):
                 dt = float(inp.t) - float(inp.tdoa_t[i])
                 ends = [(k, x) if k is not None else (k, x + dt * self._v_pred) for k, x in ends]
             sig = self._tdoa_sigma(inp, i)
-            g.add(tdoa_factor(ends, float(inp.tdoa_m[i]), self._anchor_noise(gtsam.noiseModel.Isotropic.Sigma(1, sig))))
+            g.add(tdoa_factor(ends, self._tdoa_value(inp, i), self._anchor_noise(gtsam.noiseModel.Isotropic.Sigma(1, sig))))
 
     def _still(self, inp: EpochInput) -> bool:
         """IMU-only rest test: within the epoch, gyro-norm and specific-force-norm spreads small,
@@ -674,7 +680,7 @@ class GraphEstimator(NodeEstimator):
                     else:
                         break
                 else:
-                    rows_t.append((ends, float(inp.tdoa_m[i]), self._tdoa_sigma(inp, i) ** 2))
+                    rows_t.append((ends, self._tdoa_value(inp, i), self._tdoa_sigma(inp, i) ** 2))
             if rows_t:
                 c["tdoa"] = rows_t
         self._cache = c
