@@ -238,10 +238,11 @@ def test_initial_rest_detector_ends_on_smooth_acceleration():
         f = np.tile([a_h, 0.0, g0], (100, 1)) + rng.normal(0, 0.005, (100, 3))
         return EpochInput(u, k, float(k), float(k - 1), t, rng.normal(0, 1e-4, (100, 3)), f)
 
-    assert all(est._still(epoch(k, 0.0)) for k in (1, 2, 3))
+    assert all(est._rest.update(epoch(k, 0.0)) for k in (1, 2, 3))
     # 0.2 m/s² forward: ~0.002 m/s² change of |f|, no spread; caught by the velocity integral
-    still = [est._still(epoch(k, 0.2)) for k in (4, 5)]
+    still = [est._rest.update(epoch(k, 0.2)) for k in (4, 5)]
     assert still == [False, False] or still == [True, False]
+    assert not est._at_rest and not est._rest.update(epoch(6, 0.0))  # over for good
 
 
 def test_anchor_range_time_shift_moves_anchor_by_velocity():

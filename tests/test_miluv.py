@@ -230,6 +230,31 @@ def test_passive_range_difference_by_hand(converted):
         assert np.any(np.isclose(inp.tdoa_m, by_hand, atol=1e-9)), u
 
 
+def test_central_holds_the_initial_rest(converted):
+    """The oracle has the nodes' initial-rest model (imu.InitialRest, as graph.py): on the real
+    flight's first 8 s every UAV starts at rest, its estimated speed stays near zero while the
+    detector holds (no IMU drift), and the detector lets go before the UAV really moves."""
+    from swarmnav.dataset import EpochSlicer
+    from swarmnav.estimators.central import CentralEstimator
+    from swarmnav.estimators.registry import settings_for_dataset
+    from swarmnav.evaluation import truth_at_epochs
+    from swarmnav.initial import initial_states
+
+    ds, _ = converted
+    sl, tr = EpochSlicer(ds), truth_at_epochs(ds)
+    c = CentralEstimator(ds.meta, settings_for_dataset(ds.meta), initial_states(ds, 0))
+    assert all(r.active for r in c._rest.values())
+    held = {u: 0 for u in sl.uavs}
+    for k in range(1, 81):
+        out = c.step({u: sl.epoch(k, u) for u in sl.uavs}, sl.range_labels(k), sl.tdoa_labels(k))
+        for j, u in enumerate(sl.uavs):
+            if c._rest[u].active:
+                held[u] += 1
+                assert np.linalg.norm(out[u].vel) < 0.05, (u, k, out[u].vel)
+                assert np.linalg.norm(tr.vel[k - 1, j]) < 0.2, (u, k)  # really still
+    assert all(n >= 10 for n in held.values()), held
+
+
 def test_heldout_cross_validation(converted):
     """The truth-free cross-validation behind the drag σ default (`swarmnav calibrate --dataset`):
     every anchor range of the span is held out exactly once and scored; on the first 20 s."""

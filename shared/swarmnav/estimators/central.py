@@ -29,7 +29,7 @@ from ..dataset import DatasetMeta, EpochInput, FaultKind
 from .base import InitialState, NodeEstimate, SwarmEstimator, tuned_settings
 from .factors import (DRAG_SIGMA_SCALE, range_to_point_factor, rotor_drag_factor, rotor_drag_prior, rotor_drag_sigma,
                       tdoa_factor)
-from .imu import mean_specific_force, preintegrate, preintegration_params
+from .imu import InitialRest, mean_specific_force, preintegrate, preintegration_params
 
 
 def X(u: int, k: int) -> int:
@@ -173,8 +173,8 @@ class CentralEstimator(SwarmEstimator):
         p.relinearizeSkip = int(s.get("central_relin_skip", 1))
         p.setFactorization(str(s.get("central_factorization", "CHOLESKY")).upper())
         self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag, p)
-        # rotor-drag model of multirotor UAVs, as in graph.py (_drag_factor; same settings keys):
-        # applied from the first epoch (the oracle has no rest detection; at rest v = 0 and f_xy = c)
+        # rotor-drag model of multirotor UAVs, as in graph.py (_drag_factor; same settings keys),
+        # off during a UAV's initial rest phase
         self.drag = {u for u in self.uavs if bool(s.get("rotor_drag", True))
                      and getattr(meta.node(u), "airframe", None) == "multirotor"}
         self.drag_mu0 = float(s.get("drag_mu_prior", 0.5))
@@ -182,10 +182,19 @@ class CentralEstimator(SwarmEstimator):
         self.drag_sigma_scale = float(s.get("drag_sigma_scale", DRAG_SIGMA_SCALE))
         self.tdoa_scale = float(s.get("tdoa_sigma_scale", 1.0))  # passive rows σ × this, as graph.py
         self.tdoa_offset = float(s.get("tdoa_offset_m", 0.0))  # subtracted from every rdiff (m), as graph.py
+        # a range or own tdoa row taken at t_r < t is fused with its anchor ends moved by
+        # v_pred·(t − t_r), as graph.py's anchor_time_shift (zero when rows are stamped at the epoch)
+        self.anchor_time_shift = bool(s.get("anchor_time_shift", True))
+        self._v_pred: dict[int, np.ndarray] = {}
         self._drag_started: set[int] = set()
-        rest = float(s.get("rest_max_speed_mps", 0.1))  # graph.py's initial-rest test
-        self._rest0 = {u: float(inits[u].vel_sigma) <= rest and float(np.linalg.norm(inits[u].vel)) <= rest
-                       for u in self.uavs}
+        # initial rest phase, as graph.py (imu.InitialRest; same settings keys): V = 0 (σ
+        # zupt_sigma_mps) while a UAV that started at rest is still by its IMU
+        rest = float(s.get("rest_max_speed_mps", 0.1))
+        self.zupt_sigma = float(s.get("zupt_sigma_mps", 0.02))
+        self._rest = {u: InitialRest(bool(s.get("initial_rest_zupt", True)) and float(inits[u].vel_sigma) <= rest
+                                     and float(np.linalg.norm(inits[u].vel)) <= rest, meta.earth.gravity_mps2,
+                                     float(s.get("rest_gyro_std", 0.01)), float(s.get("rest_accel_std", 0.1)), rest)
+                      for u in self.uavs}
         self.k = 0
         self.dropped = 0  # ranges removed by the oracle so far
         self.nav: dict[int, gtsam.NavState] = {}
@@ -229,6 +238,7 @@ class CentralEstimator(SwarmEstimator):
             preintegrate(pim, inp)
             g.add(gtsam.CombinedImuFactor(X(u, k0), V(u, k0), X(u, k), V(u, k), B(u, k0), B(u, k), pim))
             pred = pim.predict(self.nav[u], self.bias[u])
+            self._v_pred[u] = np.asarray(pred.velocity(), float)
             vals.insert(X(u, k), pred.pose())
             vals.insert(V(u, k), pred.velocity())
             vals.insert(B(u, k), self.bias[u])
@@ -242,6 +252,8 @@ class CentralEstimator(SwarmEstimator):
                 g.add(gtsam.PriorFactorVector(V(u, k), np.asarray(inp.gnss_vel, float), gtsam.noiseModel.Isotropic.Sigma(3, sv)))
             if inp.altitude is not None and np.isfinite(inp.altitude):
                 g.add(_altitude_factor(X(u, k), float(inp.altitude), float(inp.altitude_sigma or 1.0)))
+            if self._rest[u].update(inp):
+                g.add(gtsam.PriorFactorVector(V(u, k), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, self.zupt_sigma)))
             if u in self.drag:
                 self._add_drag(g, vals, ts, u, k, t, inp)
             if self.use_rel and len(inp.rel_target):
@@ -251,9 +263,9 @@ class CentralEstimator(SwarmEstimator):
                     sg = np.array([float(inp.rel_sigma[j]) if np.isfinite(inp.rel_sigma[j]) and inp.rel_sigma[j] > 0 else default for j in sel])
                     g.add(azel_block_factor(X(u, k), [X(int(inp.rel_target[j]), k) for j in sel],
                                             np.asarray(inp.rel_az)[sel], np.asarray(inp.rel_el)[sel], sg))
-        self._add_ranges(g, range_labels, k, set(inputs))
+        self._add_ranges(g, range_labels, k, t, set(inputs))
         if tdoa_labels is not None:
-            self._add_tdoa(g, tdoa_labels, k, set(inputs))
+            self._add_tdoa(g, tdoa_labels, k, t, set(inputs))
         self.smoother.update(g, vals, ts)
         est = self.smoother.calculateEstimate()
         self.k = k
@@ -278,10 +290,12 @@ class CentralEstimator(SwarmEstimator):
         fbar, T = mf
         if u not in self._drag_started:
             self._drag_started.add(u)
-            prior, m0 = rotor_drag_prior(M(u), self.drag_mu0, self.drag_mu_sigma, fbar[:2], self._rest0[u])
+            prior, m0 = rotor_drag_prior(M(u), self.drag_mu0, self.drag_mu_sigma, fbar[:2], self._rest[u].active)
             g.add(prior)
             vals.insert(M(u), m0)
         ts[M(u)] = t  # constant state: never leaves the window
+        if self._rest[u].active:
+            return  # ground contact, not drag (as graph.py)
         sig = rotor_drag_sigma(self.params[u], T, self.drag_sigma_scale)
         g.add(rotor_drag_factor(X(u, k), V(u, k), B(u, k), M(u), fbar[:2], sig))
 
@@ -293,7 +307,14 @@ class CentralEstimator(SwarmEstimator):
         J = self.smoother.getISAM2().jointMarginalCovariance(keys)
         return {u: J.at(X(u, k), X(u, k))[3:6, 3:6] for u in self.uavs}
 
-    def _add_ranges(self, g: gtsam.NonlinearFactorGraph, lab: dict[str, np.ndarray], k: int, live: set[int]) -> None:
+    def _shift(self, u: int, t: float, t_r: float) -> np.ndarray:
+        """How far (m, ENU) UAV u's anchor ends move for a row taken at t_r and fused at t."""
+        if not self.anchor_time_shift or not np.isfinite(t_r):
+            return np.zeros(3)
+        return self._v_pred[u] * (t - t_r)
+
+    def _add_ranges(self, g: gtsam.NonlinearFactorGraph, lab: dict[str, np.ndarray], k: int, t: float,
+                    live: set[int]) -> None:
         thr = self.meta.fault_threshold_m
         n = len(lab.get("range", []))
         for i in range(n):
@@ -310,13 +331,17 @@ class CentralEstimator(SwarmEstimator):
             if a in live and b in live:
                 g.add(_pair_range_factor(X(a, k), X(b, k), la, lb, z, noise))
             elif a in live and b in self.anchors:
-                g.add(range_to_point_factor(X(a, k), self.anchors[b] + lb, z, noise, lever=la))
+                g.add(range_to_point_factor(X(a, k), self.anchors[b] + lb + self._shift(a, t, float(lab["t"][i])),
+                                            z, noise, lever=la))
             elif b in live and a in self.anchors:
-                g.add(range_to_point_factor(X(b, k), self.anchors[a] + la, z, noise, lever=lb))
+                g.add(range_to_point_factor(X(b, k), self.anchors[a] + la + self._shift(b, t, float(lab["t"][i])),
+                                            z, noise, lever=lb))
 
-    def _add_tdoa(self, g: gtsam.NonlinearFactorGraph, lab: dict[str, np.ndarray], k: int, live: set[int]) -> None:
+    def _add_tdoa(self, g: gtsam.NonlinearFactorGraph, lab: dict[str, np.ndarray], k: int, t: float,
+                  live: set[int]) -> None:
         """Passive-listening range differences of the epoch (every end live or an anchor), the
-        truly faulty ones removed like the ranges (oracle)."""
+        truly faulty ones removed like the ranges (oracle). A row of one UAV's tags and anchors
+        is time-shifted like an anchor range."""
         thr = self.meta.fault_threshold_m
         for i in range(len(lab.get("rdiff", []))):
             if not keep_range(int(lab["fault_kind"][i]), float(lab["fault_err"][i]), thr):
@@ -335,5 +360,9 @@ class CentralEstimator(SwarmEstimator):
             else:
                 if all(key is None for key, _ in ends):
                     continue  # every tag fixed: nothing to estimate
+                uavs = {int(lab[nc][i]) for nc in ("node", "init", "resp")} - set(self.anchors)
+                if len(uavs) == 1:
+                    d = self._shift(uavs.pop(), t, float(lab["t"][i]))
+                    ends = [(key, x if key is not None else x + d) for key, x in ends]
                 sig = self.tdoa_scale * (float(lab["sigma"][i]) if lab["sigma"][i] > 0 else self.meta.uwb_sigma_m)
                 g.add(tdoa_factor(ends, float(lab["rdiff"][i]) - self.tdoa_offset, gtsam.noiseModel.Isotropic.Sigma(1, sig)))

@@ -9,7 +9,7 @@ Own-factor details for sparse ranging without GNSS (docs/miluv.md, "Third pass")
 taken at t_r inside the epoch is fused at the epoch time t with the anchor moved by v_pred·(t − t_r)
 (``anchor_time_shift``, default on); a node that starts at rest (|init.vel|, init.vel_sigma ≤
 ``rest_max_speed_mps``) holds a zero-velocity prior (``zupt_sigma_mps``) until its IMU first shows
-motion (``_still``; ``initial_rest_zupt``, default on). A redescending anchor kernel
+motion (``imu.InitialRest``; ``initial_rest_zupt``, default on). A redescending anchor kernel
 (``anchor_kernel`` cauchy/tukey/gm; default huber, k 3) is available and measured worse on MILUV.
 
 Passive-listening range differences (``EpochInput.tdoa_*``: the rows this node is listener,
@@ -89,7 +89,7 @@ from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator
 from . import detection as det
 from .factors import (DRAG_SIGMA_SCALE, rotor_drag_factor, rotor_drag_prior, rotor_drag_sigma, stacked_range_factor,
                       tdoa_factor, tdoa_h, wrap_angle)
-from .imu import mean_specific_force, preintegrate, preintegration_params
+from .imu import InitialRest, mean_specific_force, preintegrate, preintegration_params
 
 __all__ = ["AtvfgEstimator", "FgEstimator", "InsEstimator", "GraphEstimator", "link_sigma"]
 
@@ -199,12 +199,11 @@ class GraphEstimator(NodeEstimator):
         # initial rest phase (zero-velocity prior): a node that starts at rest (|init.vel| and
         # init.vel_sigma <= rest_max_speed) holds V = 0 until its IMU first shows motion
         self.zupt_sigma = float(s.get("zupt_sigma_mps", 0.02))
-        self.rest_max_speed = float(s.get("rest_max_speed_mps", 0.1))
-        self.rest_gyro_std = float(s.get("rest_gyro_std", 0.01))
-        self.rest_accel_std = float(s.get("rest_accel_std", 0.1))
-        self._rest_f0, self._rest_dv = None, np.zeros(3)
-        self._at_rest = (bool(s.get("initial_rest_zupt", True)) and float(init.vel_sigma) <= self.rest_max_speed
-                         and float(np.linalg.norm(init.vel)) <= self.rest_max_speed)
+        rest_max_speed = float(s.get("rest_max_speed_mps", 0.1))
+        self._rest = InitialRest(bool(s.get("initial_rest_zupt", True)) and float(init.vel_sigma) <= rest_max_speed
+                                 and float(np.linalg.norm(init.vel)) <= rest_max_speed,
+                                 float(np.linalg.norm(self.params.n_gravity)), float(s.get("rest_gyro_std", 0.01)),
+                                 float(s.get("rest_accel_std", 0.1)), rest_max_speed)
         self.anchor_time_shift = bool(s.get("anchor_time_shift", True))
         # multirotor rotor-drag model (nodes whose meta declares airframe "multirotor"): see
         # _drag_factor; the drag coefficient and the thrust-axis offset are estimated online
@@ -310,9 +309,7 @@ class GraphEstimator(NodeEstimator):
                                           gtsam.noiseModel.Isotropic.Sigma(3, float(inp.gnss_vel_sigma))))
         if inp.altitude is not None:
             g.add(self._altitude_factor(X(n), inp.altitude, inp.altitude_sigma or 0.1))
-        if self._at_rest and not self._still(inp):
-            self._at_rest = False  # first motion: the initial rest phase is over for good
-        if self._at_rest:
+        if self._rest.update(inp):  # until the first motion, for good
             g.add(gtsam.PriorFactorVector(V(n), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, self.zupt_sigma)))
         self._v_pred = np.asarray(pred.velocity(), float)
         v = gtsam.Values()
@@ -498,25 +495,10 @@ class GraphEstimator(NodeEstimator):
             sig = self._tdoa_sigma(inp, i)
             g.add(tdoa_factor(ends, self._tdoa_value(inp, i), self._anchor_noise(gtsam.noiseModel.Isotropic.Sigma(1, sig))))
 
-    def _still(self, inp: EpochInput) -> bool:
-        """IMU-only rest test: within the epoch, gyro-norm and specific-force-norm spreads small,
-        mean rate below ``rest_gyro_std``, |mean |f| − g| < 3·rest_accel_std; and across epochs
-        the velocity change integrated from the specific force relative to the first epoch's mean
-        (f0) stays below ``rest_max_speed`` (a smooth acceleration has no spread but shows here)."""
-        if len(inp.gyro) < 2:
-            return True
-        wn = np.linalg.norm(inp.gyro, axis=1)
-        fn = np.linalg.norm(inp.accel, axis=1)
-        g0 = float(np.linalg.norm(self.params.n_gravity))
-        if not (wn.std() < self.rest_gyro_std and wn.mean() < self.rest_gyro_std
-                and fn.std() < self.rest_accel_std and abs(fn.mean() - g0) < 3 * self.rest_accel_std):
-            return False
-        f = np.asarray(inp.accel, float)
-        if self._rest_f0 is None:
-            self._rest_f0 = f.mean(axis=0)
-        dt = np.diff(np.r_[np.asarray(inp.imu_t, float), float(inp.t)])
-        self._rest_dv = self._rest_dv + ((f - self._rest_f0) * dt[:, None]).sum(axis=0)
-        return bool(np.linalg.norm(self._rest_dv) < self.rest_max_speed)
+    @property
+    def _at_rest(self) -> bool:
+        """In the initial rest phase (imu.InitialRest)."""
+        return self._rest.active
 
     def _own_ranges(self, inp: EpochInput):
         """Inter-UAV ranges this node took part in: per other UAV, the mean and the tag offsets."""

@@ -57,3 +57,44 @@ def preintegrate(pim: gtsam.PreintegratedCombinedMeasurements, inp: EpochInput) 
     for j in np.flatnonzero(dts > 1e-9):
         pim.integrateMeasurement(acc[j], gyro[j], float(dts[j]))
     return pim
+
+
+class InitialRest:
+    """IMU-only detector of a node's initial rest phase (it starts on the ground, at rest).
+
+    ``active`` starts True when the node is known to start at rest and turns False, for good, at
+    the first epoch whose IMU shows motion: within the epoch the gyro-norm and specific-force-norm
+    spreads (rad/s, m/s²) are above ``gyro_std`` / ``accel_std``, the mean rate above ``gyro_std``
+    or |mean |f| − g| above 3·``accel_std``; or, across epochs, the velocity change (m/s)
+    integrated from the specific force relative to the first epoch's mean exceeds ``max_speed``
+    (a smooth acceleration has no spread but shows there). While active, the estimators hold a
+    zero-velocity prior and keep the rotor-drag factor off (ground contact, not drag).
+    """
+
+    def __init__(self, active: bool, gravity_mps2: float, gyro_std: float = 0.01, accel_std: float = 0.1,
+                 max_speed: float = 0.1):
+        self.active = bool(active)
+        self.g0, self.gyro_std, self.accel_std, self.max_speed = float(gravity_mps2), gyro_std, accel_std, max_speed
+        self._f0: np.ndarray | None = None
+        self._dv = np.zeros(3)
+
+    def update(self, inp: EpochInput) -> bool:
+        """Feed one epoch's IMU samples; returns ``active`` after it."""
+        if self.active and not self._still(inp):
+            self.active = False
+        return self.active
+
+    def _still(self, inp: EpochInput) -> bool:
+        if len(inp.gyro) < 2:
+            return True
+        wn = np.linalg.norm(inp.gyro, axis=1)
+        fn = np.linalg.norm(inp.accel, axis=1)
+        if not (wn.std() < self.gyro_std and wn.mean() < self.gyro_std
+                and fn.std() < self.accel_std and abs(fn.mean() - self.g0) < 3 * self.accel_std):
+            return False
+        f = np.asarray(inp.accel, float)
+        if self._f0 is None:
+            self._f0 = f.mean(axis=0)
+        dt = np.diff(np.r_[np.asarray(inp.imu_t, float), float(inp.t)])
+        self._dv = self._dv + ((f - self._f0) * dt[:, None]).sum(axis=0)
+        return bool(np.linalg.norm(self._dv) < self.max_speed)
