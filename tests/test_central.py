@@ -139,6 +139,7 @@ def test_central_uses_tdoa_and_drops_labelled_rows(smoke):
     # the initial-rest prior (epoch 1 only here: the smoke UAVs accelerate from rest) is off, so
     # that the comparison isolates the rows (with it: 1.970 vs 1.796 m, without: 1.959 vs 1.740)
     off = {"initial_rest_zupt": False}
+    assert _central_rmse(_tdoa_rows(smoke, 0.0, FaultKind.NONE)) < _central_rmse(smoke)  # with it, too
     base = _central_rmse(smoke, **off)
     exact = _central_rmse(_tdoa_rows(smoke, 0.0, FaultKind.NONE), **off)
     labelled = _central_rmse(_tdoa_rows(smoke, 2.0, FaultKind.NLOS_REAL), **off)
@@ -157,29 +158,38 @@ def test_central_tdoa_offset(smoke):
 
 
 def test_central_anchor_range_and_own_tdoa_time_shift(smoke):
-    """As graph.py: a range taken at t_r < t to an anchor, and a passive row of one UAV's tag and
-    two anchors, are fused at t with the anchor ends moved by v_pred·(t − t_r)."""
+    """As graph.py: a range taken at t_r < t to an anchor (the anchor as either end), and a passive
+    row of one UAV's tags and two anchors, are fused at t with the anchor ends moved by that UAV's
+    v_pred·(t − t_r); a row with two UAVs is not shifted."""
     c = CentralEstimator(smoke.meta, {"central_use_rel": False}, initial_states(smoke, 1))
-    u = c.uavs[0]
+    u, w = c.uavs[0], c.uavs[1]
     c.anchors = {100: np.array([10.0, 0.0, 0.0]), 101: np.array([0.0, 10.0, 0.0])}
-    c.tags = {u: {0: np.zeros(3)}, 100: {0: np.zeros(3)}, 101: {0: np.zeros(3)}}
-    c._v_pred = {u: np.array([2.0, 0.0, 0.0])}
-    z = 0.05 * 2.0  # the UAV moved 0.1 m along x between t_r = 0.95 and t = 1.0
-    ranges = {"t": np.array([0.95]), "a": np.array([u]), "b": np.array([100]), "tag_a": np.array([0]),
-              "tag_b": np.array([0]), "range": np.array([10.0]), "sigma": np.array([0.1]),
-              "fault_kind": np.array([0]), "fault_err": np.array([0.0])}
-    p_r = np.zeros(3)  # position at t_r; at t it is p_r + (z, 0, 0)
-    rdiff = np.linalg.norm(c.anchors[101] - p_r) - np.linalg.norm(c.anchors[100] - p_r)
-    tdoa = {"t": np.array([0.95]), "node": np.array([u]), "tag": np.array([0]), "init": np.array([100]),
-            "tag_init": np.array([0]), "resp": np.array([101]), "tag_resp": np.array([0]),
-            "rdiff": np.array([rdiff]), "sigma": np.array([0.01]), "fault_kind": np.array([0]),
-            "fault_err": np.array([0.0])}
+    c.tags = {n: {0: np.zeros(3)} for n in (u, w, 100, 101)}
+    c._v_pred = {u: np.array([2.0, 0.0, 0.0]), w: np.array([0.0, -3.0, 0.0])}
+    p_u, p_w = np.zeros(3), np.array([0.0, 5.0, 0.0])  # at t_r = 0.95; at t = 1.0 moved by v·0.05
+    at_t = {u: p_u + c._v_pred[u] * 0.05, w: p_w + c._v_pred[w] * 0.05}
+    one = lambda *x: np.array(list(x))  # noqa: E731
+    ranges = {"t": one(0.95, 0.95), "a": one(u, 101), "b": one(100, w), "tag_a": one(0, 0), "tag_b": one(0, 0),
+              "range": one(10.0, 5.0), "sigma": one(0.1, 0.1), "fault_kind": one(0, 0), "fault_err": one(0.0, 0.0)}
+    rd = lambda L, I, R: np.linalg.norm(R - L) - np.linalg.norm(I - L)  # noqa: E731
+    A0, A1 = c.anchors[100], c.anchors[101]
+    # row 0: u listens to anchors 100 -> 101 (shifted); row 1: u listens to w -> anchor 100, both
+    # moving (not shifted: exact at the epoch-time positions)
+    tdoa = {"t": one(0.95, 0.95), "node": one(u, u), "tag": one(0, 0), "init": one(100, w), "tag_init": one(0, 0),
+            "resp": one(101, 100), "tag_resp": one(0, 0), "rdiff": one(rd(p_u, A0, A1), rd(at_t[u], at_t[w], A0)),
+            "sigma": one(0.01, 0.01), "fault_kind": one(0, 0), "fault_err": one(0.0, 0.0)}
     v = gtsam.Values()
-    v.insert(X(u, 7), gtsam.Pose3(gtsam.Rot3(), p_r + [z, 0.0, 0.0]))
-    for shift, expect_zero in ((True, True), (False, False)):
+    for n in (u, w):
+        v.insert(X(n, 7), gtsam.Pose3(gtsam.Rot3(), at_t[n]))
+    for shift in (True, False):
         c.anchor_time_shift = shift
         g = gtsam.NonlinearFactorGraph()
-        c._add_ranges(g, ranges, 7, 1.0, {u})
-        c._add_tdoa(g, tdoa, 7, 1.0, {u})
-        assert g.size() == 2
-        assert (g.error(v) < 1e-12) == expect_zero, (shift, g.error(v))
+        c._add_ranges(g, ranges, 7, 1.0, {u, w})
+        c._add_tdoa(g, tdoa, 7, 1.0, {u, w})
+        assert g.size() == 4
+        errs = [g.at(i).error(v) for i in range(4)]
+        assert errs[3] < 1e-12, errs  # the two-UAV row is never shifted
+        if shift:
+            assert max(errs) < 1e-12, errs
+        else:
+            assert min(errs[:3]) > 1e-6, errs

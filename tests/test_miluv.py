@@ -230,11 +230,13 @@ def test_passive_range_difference_by_hand(converted):
         assert np.any(np.isclose(inp.tdoa_m, by_hand, atol=1e-9)), u
 
 
-def test_central_holds_the_initial_rest(converted):
+def test_central_holds_the_initial_rest(converted, monkeypatch):
     """The oracle has the nodes' initial-rest model (imu.InitialRest, as graph.py): on the real
     flight's first 8 s every UAV starts at rest, its estimated speed stays near zero while the
-    detector holds (no IMU drift), and the detector lets go before the UAV really moves."""
+    detector holds (no IMU drift), the detector lets go before the UAV really moves, and the
+    rotor-drag factor is added only after it has (ground contact is not drag)."""
     from swarmnav.dataset import EpochSlicer
+    from swarmnav.estimators import central as central_mod
     from swarmnav.estimators.central import CentralEstimator
     from swarmnav.estimators.registry import settings_for_dataset
     from swarmnav.evaluation import truth_at_epochs
@@ -245,8 +247,15 @@ def test_central_holds_the_initial_rest(converted):
     c = CentralEstimator(ds.meta, settings_for_dataset(ds.meta), initial_states(ds, 0))
     assert all(r.active for r in c._rest.values())
     held = {u: 0 for u in sl.uavs}
+    drag_keys = []  # the pose key of every drag factor added
+    real = central_mod.rotor_drag_factor
+    monkeypatch.setattr(central_mod, "rotor_drag_factor", lambda kx, *a: drag_keys.append(kx) or real(kx, *a))
     for k in range(1, 81):
+        was = {u: c._rest[u].active for u in sl.uavs}
+        drag_keys.clear()
         out = c.step({u: sl.epoch(k, u) for u in sl.uavs}, sl.range_labels(k), sl.tdoa_labels(k))
+        assert sorted(drag_keys) == sorted(central_mod.X(u, k) for u in sl.uavs if not c._rest[u].active), k
+        assert all(was[u] or not c._rest[u].active for u in sl.uavs)  # over for good
         for j, u in enumerate(sl.uavs):
             if c._rest[u].active:
                 held[u] += 1

@@ -16,8 +16,15 @@ bounded). Per UAV and epoch k: Pose3 X, velocity V, bias B; factors:
 drops every range or range difference that is labelled faulty: ``fault_kind != NONE`` **or** ``|fault_err| > meta.fault_threshold_m``
 (the scoring definition of a faulty link-epoch, widened to every labelled fault episode, e.g. an
 interfered link whose bias happens to be small still has 5x noise). No estimator that is compared
-with it may see these labels. Ranges are attached to the epoch's states (event times inside the
-epoch are not interpolated — exact for the simulator, where ranges are taken at the epoch time).
+with it may see these labels. The labels are the dataset's (for a passive row: its measured rdiff
+against truth, before the estimators' ``tdoa_offset_m``). Ranges are attached to the epoch's states;
+one taken at t_r inside the epoch between a UAV and an anchor, or a passive row of one UAV's tags
+and anchors, is fused with the anchor ends moved by v_pred·(t − t_r) (``anchor_time_shift``, as
+graph.py; zero for the simulator, whose ranges are taken at the epoch time); inter-UAV rows are
+not shifted.
+
+It has the nodes' own-factor models too: the rotor-drag factor of multirotors, and the initial-rest
+zero-velocity prior (``imu.InitialRest``) while a UAV that started at rest is still by its IMU.
 """
 
 from __future__ import annotations
@@ -28,7 +35,7 @@ import numpy as np
 from ..dataset import DatasetMeta, EpochInput, FaultKind
 from .base import InitialState, NodeEstimate, SwarmEstimator, tuned_settings
 from .factors import (DRAG_SIGMA_SCALE, range_to_point_factor, rotor_drag_factor, rotor_drag_prior, rotor_drag_sigma,
-                      tdoa_factor)
+                      tdoa_factor, tdoa_row)
 from .imu import InitialRest, mean_specific_force, preintegrate, preintegration_params
 
 
@@ -189,11 +196,8 @@ class CentralEstimator(SwarmEstimator):
         self._drag_started: set[int] = set()
         # initial rest phase, as graph.py (imu.InitialRest; same settings keys): V = 0 (σ
         # zupt_sigma_mps) while a UAV that started at rest is still by its IMU
-        rest = float(s.get("rest_max_speed_mps", 0.1))
         self.zupt_sigma = float(s.get("zupt_sigma_mps", 0.02))
-        self._rest = {u: InitialRest(bool(s.get("initial_rest_zupt", True)) and float(inits[u].vel_sigma) <= rest
-                                     and float(np.linalg.norm(inits[u].vel)) <= rest, meta.earth.gravity_mps2,
-                                     float(s.get("rest_gyro_std", 0.01)), float(s.get("rest_accel_std", 0.1)), rest)
+        self._rest = {u: InitialRest.from_settings(s, inits[u].vel, inits[u].vel_sigma, meta.earth.gravity_mps2)
                       for u in self.uavs}
         self.k = 0
         self.dropped = 0  # ranges removed by the oracle so far
@@ -364,5 +368,5 @@ class CentralEstimator(SwarmEstimator):
                 if len(uavs) == 1:
                     d = self._shift(uavs.pop(), t, float(lab["t"][i]))
                     ends = [(key, x if key is not None else x + d) for key, x in ends]
-                sig = self.tdoa_scale * (float(lab["sigma"][i]) if lab["sigma"][i] > 0 else self.meta.uwb_sigma_m)
-                g.add(tdoa_factor(ends, float(lab["rdiff"][i]) - self.tdoa_offset, gtsam.noiseModel.Isotropic.Sigma(1, sig)))
+                z, sig = tdoa_row(lab["rdiff"][i], lab["sigma"][i], self.meta.uwb_sigma_m, self.tdoa_scale, self.tdoa_offset)
+                g.add(tdoa_factor(ends, z, gtsam.noiseModel.Isotropic.Sigma(1, sig)))

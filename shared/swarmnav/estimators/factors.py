@@ -158,6 +158,14 @@ def _lever_jac(R: np.ndarray, lever: np.ndarray) -> np.ndarray:
     return np.hstack([-R @ tx, R])
 
 
+def tdoa_row(rdiff: float, sigma: float, fallback_sigma: float, sigma_scale: float = 1.0,
+             offset_m: float = 0.0) -> tuple[float, float]:
+    """(value, σ) in m of one passive-listening row as the estimators fuse it: the measured rdiff
+    less the passive path's offset (``tdoa_offset_m``), and the row's σ (else ``fallback_sigma``,
+    the ranging σ) × ``tdoa_sigma_scale``. One place for graph.py and central.py."""
+    return float(rdiff) - offset_m, sigma_scale * (float(sigma) if sigma > 0 else float(fallback_sigma))
+
+
 def tdoa_h(p_listener: np.ndarray, p_init: np.ndarray, p_resp: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
     """Passive-listening range difference ‖p_resp − p_l‖ − ‖p_init − p_l‖ (m) and its Jacobians
     (each (3,)) w.r.t. the listener, initiator and responder ENU positions."""

@@ -88,7 +88,7 @@ from ..dataset import DatasetMeta, EpochInput
 from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState, tuned_settings
 from . import detection as det
 from .factors import (DRAG_SIGMA_SCALE, rotor_drag_factor, rotor_drag_prior, rotor_drag_sigma, stacked_range_factor,
-                      tdoa_factor, tdoa_h, wrap_angle)
+                      tdoa_factor, tdoa_h, tdoa_row, wrap_angle)
 from .imu import InitialRest, mean_specific_force, preintegrate, preintegration_params
 
 __all__ = ["AtvfgEstimator", "FgEstimator", "InsEstimator", "GraphEstimator", "link_sigma"]
@@ -199,11 +199,7 @@ class GraphEstimator(NodeEstimator):
         # initial rest phase (zero-velocity prior): a node that starts at rest (|init.vel| and
         # init.vel_sigma <= rest_max_speed) holds V = 0 until its IMU first shows motion
         self.zupt_sigma = float(s.get("zupt_sigma_mps", 0.02))
-        rest_max_speed = float(s.get("rest_max_speed_mps", 0.1))
-        self._rest = InitialRest(bool(s.get("initial_rest_zupt", True)) and float(init.vel_sigma) <= rest_max_speed
-                                 and float(np.linalg.norm(init.vel)) <= rest_max_speed,
-                                 float(np.linalg.norm(self.params.n_gravity)), float(s.get("rest_gyro_std", 0.01)),
-                                 float(s.get("rest_accel_std", 0.1)), rest_max_speed)
+        self._rest = InitialRest.from_settings(s, init.vel, init.vel_sigma, float(np.linalg.norm(self.params.n_gravity)))
         self.anchor_time_shift = bool(s.get("anchor_time_shift", True))
         # multirotor rotor-drag model (nodes whose meta declares airframe "multirotor"): see
         # _drag_factor; the drag coefficient and the thrust-axis offset are estimated online
@@ -465,12 +461,12 @@ class GraphEstimator(NodeEstimator):
         return own, coop
 
     def _tdoa_sigma(self, inp: EpochInput, i: int) -> float:
-        """σ (m) of tdoa row i: the row's (else the ranging σ) × ``tdoa_sigma_scale``."""
-        return self.tdoa_scale * (float(inp.tdoa_sigma[i]) if inp.tdoa_sigma[i] > 0 else self.uwb_sigma)
+        """σ (m) of tdoa row i (factors.tdoa_row)."""
+        return tdoa_row(inp.tdoa_m[i], inp.tdoa_sigma[i], self.uwb_sigma, self.tdoa_scale, self.tdoa_offset)[1]
 
     def _tdoa_value(self, inp: EpochInput, i: int) -> float:
-        """Measured rdiff (m) of tdoa row i less the passive path's offset ``tdoa_offset_m``."""
-        return float(inp.tdoa_m[i]) - self.tdoa_offset
+        """Measured rdiff (m) of tdoa row i less the passive path's offset (factors.tdoa_row)."""
+        return tdoa_row(inp.tdoa_m[i], inp.tdoa_sigma[i], self.uwb_sigma, self.tdoa_scale, self.tdoa_offset)[0]
 
     def _tdoa_ends(self, inp: EpochInput, i: int) -> tuple[tuple[int, int], ...]:
         """(node, tag) of listener, initiator, responder of tdoa row i."""
