@@ -282,6 +282,8 @@ def test_heldout_cross_validation(converted):
     assert [c["n"] for c in res] == [n_anchor, n_anchor] and n_anchor > 20
     assert all(0.05 < c["median_abs_m"] <= c["rms_m"] * 3 < 30 for c in res)
     assert res[0]["rms_m"] != res[1]["rms_m"]  # the candidate setting reaches the estimator
+    # held-out NIS: finite and of the order of 1 (the estimate reports a covariance)
+    assert all(0.1 < c["nis_mean"] < 100 for c in res), [c["nis_mean"] for c in res]
 
 
 def test_heldout_cv_holds_out_the_transactions_passive_rows(converted, monkeypatch):
@@ -324,7 +326,9 @@ def test_calibrate_dataset_cli(converted, tmp_path, capsys):
                  "--out", str(tmp_path / "cv.json")]) == 0
     out = json.loads((tmp_path / "cv.json").read_text())
     assert [c["settings"] for c in out["candidates"]] == [{"drag_sigma_scale": 1.0}, {"drag_sigma_scale": 3.0}]
-    assert out["best"] in [c["settings"] for c in out["candidates"]] and "lowest held-out RMS" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert out["best"] in [c["settings"] for c in out["candidates"]] and "lowest held-out RMS" in printed
+    assert "NIS (1 = consistent)" in printed and all(c["nis_mean"] > 0 for c in out["candidates"])
     assert out["algo"] == "fg"
     assert main(["calibrate", "--dataset", str(tmp_path / "ds"), "--grid", "relink_weight=0.3", "--folds", "2",
                  "--algo", "atvfg", "--out", str(tmp_path / "cv2.json")]) == 0

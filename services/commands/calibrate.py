@@ -18,9 +18,11 @@ converged range residuals |d_ij - |p_i - p_j|| as JSON (key "delta_l_m"). `atvfg
 anchors: every K-th anchor range is held out (with the passive-listening rows of the same
 transactions), `fg` (or --algo atvfg) runs on the rest with each candidate value (--grid
 KEY=V1,V2,..., a graph.py settings key), and the held-out ranges are predicted from the estimates.
-Prints RMS and median prediction error per candidate (lower = the better model of the data) and
+Prints RMS and median prediction error per candidate (lower = the better model of the data), the
+held-out ranges' mean NIS (error² over the range σ² plus the estimate's position variance along the
+line of sight: 1 = consistent covariance, > 1 = overconfident; a truth-free counterpart of NEES), and
 writes them as JSON with --out. This is how drag_sigma_scale and the settings of
-configs/miluv.toml were chosen for sparse real data (docs/miluv.md, "Fifth pass", "Sixth pass").
+configs/miluv.toml were chosen for sparse real data (docs/miluv.md, "Fifth" to "Seventh pass").
 
 examples:
   swarmnav calibrate --config configs/paper_faultfree.toml --out configs/delta_l.json
@@ -110,9 +112,10 @@ def _cross_validate(args) -> int:
     except ValueError as e:
         raise ConfigError(f"{args.dataset}: {e}") from None
     print()
-    print(f"{key:>16}  {'held-out RMS [m]':>16}  {'median |e| [m]':>14}  {'n':>5}")
+    print(f"{key:>16}  {'held-out RMS [m]':>16}  {'median |e| [m]':>14}  {'NIS (1 = consistent)':>20}  {'n':>5}")
     for r in res:
-        print(f"{r['settings'][key]:>16g}  {r['rms_m']:>16.3f}  {r['median_abs_m']:>14.3f}  {r['n']:>5d}")
+        print(f"{r['settings'][key]:>16g}  {r['rms_m']:>16.3f}  {r['median_abs_m']:>14.3f}  {r['nis_mean']:>20.2f}"
+              f"  {r['n']:>5d}")
     if len({r["rms_m"] for r in res}) == 1 and len(res) > 1:
         print(f"swarmnav calibrate: warning: every {key} value gave the same result — is {key!r} a graph "
               "estimator settings key (docs/estimators.md)?")

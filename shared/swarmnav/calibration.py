@@ -81,7 +81,10 @@ def heldout_anchor_cv(ds: Dataset, seed: int, settings: dict, candidates: list[d
     ``algo`` runs on the rest with ``settings`` updated by each candidate; each held-out range is predicted from the estimate of its epoch (tag at
     pos + R·lever, the anchor's tag position) and scored by its error. Returns, per candidate, the
     RMS and median |error| over all folds (m) and the count — lower is a better model of the data,
-    and no truth is used. ``progress(i, n)`` is called after each run.
+    and no truth is used — and the mean normalised innovation squared of the held-out ranges,
+    e² / (σ² + uᵀ P u) with the estimate's position covariance P along the line of sight u: ≈ 1
+    when the reported covariance is consistent, > 1 when it is overconfident (a truth-free
+    counterpart of NEES). ``progress(i, n)`` is called after each run.
     """
     from .evaluation import run_algorithm
 
@@ -97,7 +100,7 @@ def heldout_anchor_cv(ds: Dataset, seed: int, settings: dict, candidates: list[d
     out = []
     n_runs, done = len(candidates) * folds, 0
     for cand in candidates:
-        errs = []
+        errs, nis = [], []
         for f in range(folds):
             held = np.zeros(len(r["t"]), bool)
             held[idx[f::folds]] = True
@@ -125,11 +128,18 @@ def heldout_anchor_cv(ds: Dataset, seed: int, settings: dict, candidates: list[d
                 tag = p + quat_to_matrix(q) @ np.asarray(meta.node(int(r["a"][i])).tags.get(int(r["tag_a"][i]), (0.0, 0.0, 0.0)))
                 b = int(r["b"][i])
                 anchor = anchors[b] + np.asarray(meta.node(b).tags.get(int(r["tag_b"][i]), (0.0, 0.0, 0.0)))
-                errs.append(float(np.linalg.norm(tag - anchor) - r["range"][i]))
+                d = tag - anchor
+                errs.append(float(np.linalg.norm(d) - r["range"][i]))
+                # the error's predicted variance: the range σ² plus the estimate's position
+                # variance along the line of sight (NaN when the estimator reports no covariance)
+                u_los = d / max(float(np.linalg.norm(d)), 1e-9)
+                sig = float(r["sigma"][i]) if np.isfinite(r["sigma"][i]) and r["sigma"][i] > 0 else meta.uwb_sigma_m
+                nis.append(errs[-1] ** 2 / (sig ** 2 + float(u_los @ res.pos_cov[k - 1, j] @ u_los)))
             done += 1
             if progress:
                 progress(done, n_runs)
-        e = np.array(errs)
+        e, z = np.array(errs), np.array(nis)
         out.append({"settings": dict(cand), "rms_m": float(np.sqrt(np.mean(e ** 2))) if len(e) else float("nan"),
-                    "median_abs_m": float(np.median(np.abs(e))) if len(e) else float("nan"), "n": int(len(e))})
+                    "median_abs_m": float(np.median(np.abs(e))) if len(e) else float("nan"), "n": int(len(e)),
+                    "nis_mean": float(np.nanmean(z)) if np.isfinite(z).any() else float("nan")})
     return out
