@@ -141,24 +141,34 @@ def test_improvement_pct():
 
 
 def test_link_labels_merge_rows_per_epoch():
+    """Rows merge per (epoch, pair); each link-epoch carries its own threshold, 3σ of its row's
+    noise (fault_threshold_m × σ_row / uwb_sigma_m), and the scoring uses it."""
     from swarmnav.evaluation import link_labels
 
     class _Meta:
         t_start = 0.0
         epoch_dt_s = 1.0
+        uwb_sigma_m = 0.2
+        fault_threshold_m = 0.6
 
     class _DS:
         meta = _Meta()
 
         def table(self, name):
-            return {"t": np.array([0.5, 0.9, 1.0, 1.5]), "a": np.array([2, 1, 1, 1]), "b": np.array([1, 2, 3, 2]),
-                    "fault_err": np.array([0.1, -4.0, np.nan, 0.0]), "fault_kind": np.array([0, 1, 0, 0])}
+            return {"t": np.array([0.5, 0.9, 1.0, 1.5, 2.5, 2.6]), "a": np.array([2, 1, 1, 1, 1, 1]),
+                    "b": np.array([1, 2, 3, 2, 2, 2]), "fault_err": np.array([0.1, -4.0, np.nan, 0.0, 0.5, 0.7]),
+                    "fault_kind": np.array([0, 1, 0, 0, 0, 0]), "sigma": np.array([0.2, 0.2, 0.2, np.nan, 0.1, 0.4])}
 
     lab = link_labels(_DS())
-    got = {(int(k), int(a), int(b)): float(e) for k, a, b, e, _ in lab.tolist()}
-    assert got[(1, 1, 2)] == 4.0  # two rows in (0, 1]: the larger |err|
-    assert math.isnan(got[(1, 1, 3)])  # t = 1.0 belongs to epoch 1 ((0, 1])
-    assert got[(2, 1, 2)] == 0.0
+    got = {(int(k), int(a), int(b)): (float(e), float(th)) for k, a, b, e, _, th in lab.tolist()}
+    assert got[(1, 1, 2)] == (4.0, 0.6)  # two rows in (0, 1]: the larger |err| / thr
+    assert math.isnan(got[(1, 1, 3)][0])  # t = 1.0 belongs to epoch 1 ((0, 1])
+    assert got[(2, 1, 2)] == (0.0, 0.6)  # no σ: the dataset's threshold
+    # epoch 3: 0.5 m on a σ 0.1 row (thr 0.3: faulty) beats 0.7 m on a σ 0.4 row (thr 1.2: clean)
+    assert got[(3, 1, 2)][0] == 0.5 and abs(got[(3, 1, 2)][1] - 0.3) < 1e-12
+    links = np.array([(k, 1, 2, 1, 0.0, 1.0) for k in (1, 2, 3)], dtype=LINK_DTYPE)
+    _, faulty, _ = M.match_links_to_labels(links, lab, 0.6)
+    assert faulty.tolist() == [True, False, True]  # by the per-row thresholds (0.5 < 0.6 alone)
 
 
 def _block(x):

@@ -24,7 +24,8 @@ Conventions:
   tag ``tag_a`` on ``a`` to tag ``tag_b`` on ``b`` (lever arms in ``meta.nodes``). Both UAVs of the
   pair receive the same value. ``fault_kind``: see :class:`FaultKind`; ``fault_err`` is the error
   the fault adds in metres (NaN when unknown). A link-epoch is *faulty* for scoring when
-  ``|fault_err| > meta.fault_threshold_m`` (3 sigma of the ranging noise).
+  ``|fault_err|`` > 3 sigma of the row's ranging noise (``meta.fault_threshold_m`` × the row's
+  sigma / ``meta.uwb_sigma_m``; evaluation.link_labels).
 - A tdoa row is one passive-listening measurement: tag ``tag`` on UAV ``node`` overheard the
   two-way ranging transaction initiated by tag ``tag_init`` on node ``init`` and answered by tag
   ``tag_resp`` on node ``resp`` (UAVs or anchors; the listener's own other tag allowed) and
@@ -144,7 +145,7 @@ class DatasetMeta(_M):
     earth: Earth
     uwb_sigma_m: float
     rel_sigma_rad: float | None = None
-    fault_threshold_m: float  # scoring threshold: 3 sigma of ranging noise
+    fault_threshold_m: float  # scoring threshold: 3 sigma of ranging noise (at uwb_sigma_m; scaled per row)
     gnss_outages: list[Window] = Field(default_factory=list)
     events: list[EventSpec] = Field(default_factory=list)  # scheduled process kills/restarts
     init: dict = Field(default_factory=dict)  # InitialKnowledge as dict (sigmas)

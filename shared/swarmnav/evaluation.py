@@ -158,14 +158,20 @@ def run_algorithm(ds: Dataset, algo: str, seed: int, settings: dict,
 
 
 def link_labels(ds: Dataset) -> np.ndarray:
-    """Fault labels per (epoch, unordered pair): records (k, a, b, fault_err_abs, kind).
+    """Fault labels per (epoch, unordered pair): records (k, a, b, err, kind, thr).
 
-    Several range rows of one pair in one epoch (event-timestamped real data) are merged: the
-    largest |fault_err| counts, NaN (unknown) only if every row is unknown.
+    ``err`` = |fault_err| (m) and ``thr`` = the scoring threshold (m) of the link-epoch: it is
+    *faulty* when err > thr. thr = ``meta.fault_threshold_m`` (3σ of the ranging noise, DESIGN.md
+    §4) scaled by the row's σ over ``meta.uwb_sigma_m`` — i.e. 3σ of that row's own noise; the
+    simulator's rows all carry uwb_sigma_m (thr = fault_threshold_m exactly), a recording's carry
+    their own (MILUV: |bias| > 3·std, the issue's rule). Several range rows of one pair in one
+    epoch (event-timestamped real data) are merged: the row with the largest err/thr counts, NaN
+    (unknown) only if every row is unknown.
     """
     meta = ds.meta
     r = ds.table("ranges")
-    dt = np.dtype([("k", np.int32), ("a", np.int32), ("b", np.int32), ("err", np.float64), ("kind", np.int16)])
+    dt = np.dtype([("k", np.int32), ("a", np.int32), ("b", np.int32), ("err", np.float64), ("kind", np.int16),
+                   ("thr", np.float64)])
     if len(r["t"]) == 0:
         return np.zeros(0, dt)
     # epoch k covers (t_{k-1}, t_k]
@@ -173,13 +179,19 @@ def link_labels(ds: Dataset) -> np.ndarray:
     a = np.minimum(r["a"], r["b"])
     b = np.maximum(r["a"], r["b"])
     err = np.abs(r["fault_err"])
-    best: dict[tuple[int, int, int], tuple[float, int]] = {}
-    for kk, aa, bb, ee, kind in zip(k.tolist(), a.tolist(), b.tolist(), err.tolist(), r["fault_kind"].tolist()):
+    thr = np.full(len(err), float(meta.fault_threshold_m))
+    sig = np.asarray(r["sigma"], float)
+    if meta.uwb_sigma_m and meta.uwb_sigma_m > 0:
+        ok = np.isfinite(sig) & (sig > 0)
+        thr[ok] = meta.fault_threshold_m * (sig[ok] / meta.uwb_sigma_m)
+    best: dict[tuple[int, int, int], tuple[float, int, float]] = {}
+    for kk, aa, bb, ee, kind, th in zip(k.tolist(), a.tolist(), b.tolist(), err.tolist(), r["fault_kind"].tolist(),
+                                        thr.tolist()):
         key = (kk, aa, bb)
         old = best.get(key)
-        if old is None or (np.isnan(old[0]) and not np.isnan(ee)) or (ee > old[0]):
-            best[key] = (ee, kind)
+        if old is None or (np.isnan(old[0]) and not np.isnan(ee)) or (ee / th > old[0] / old[2]):
+            best[key] = (ee, kind, th)
     out = np.zeros(len(best), dt)
-    for i, (key, (ee, kind)) in enumerate(sorted(best.items())):
-        out[i] = (*key, ee, kind)
+    for i, (key, (ee, kind, th)) in enumerate(sorted(best.items())):
+        out[i] = (*key, ee, kind, th)
     return out

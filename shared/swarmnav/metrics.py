@@ -15,8 +15,9 @@ Definitions (the report's keys keep exactly these meanings):
 - **Detection**, per classification decision: each UAV classifies each of its links each epoch
   (both ends of a pair decide independently, so a link-epoch yields up to two decisions). A decision
   is *positive* when the link is classified H1 or H0 (double threshold), or H0 only (single threshold
-  at Δh). Truth: the link-epoch is *faulty* when its labelled |fault_err| > fault_threshold_m, clean
-  otherwise; unknown labels (NaN) are not scored. precision = TP/(TP+FP), recall = TP/(TP+FN),
+  at Δh). Truth: the link-epoch is *faulty* when its labelled |fault_err| > 3σ of its row's ranging
+  noise (``fault_threshold_m`` × the row's σ / ``uwb_sigma_m``; = fault_threshold_m for the
+  simulator, whose rows all carry uwb_sigma_m), clean otherwise; unknown labels (NaN) are not scored. precision = TP/(TP+FP), recall = TP/(TP+FN),
   false-alarm rate = FP/(FP+TN); ``None`` when the denominator is 0.
 - **step_ms**: p50/p99 over every (UAV, epoch, seed) of the wall time the estimator spent.
 - **improvement_pct** = 100·(1 − RMSE_a / RMSE_b) on the swarm 3-D position RMSE.
@@ -122,7 +123,8 @@ def match_links_to_labels(links: np.ndarray, labels: np.ndarray, threshold_m: fl
     """Join classification decisions with link-epoch labels.
 
     links: records with fields k, observer, other, cls (LINK_DTYPE); labels: records k, a, b, err
-    with a < b and one row per (k, a, b) (see :func:`swarmnav.evaluation.link_labels`). Returns
+    with a < b and one row per (k, a, b), and optionally thr, the link-epoch's own threshold (see
+    :func:`swarmnav.evaluation.link_labels`; ``threshold_m`` applies when absent). Returns
     (cls, faulty) arrays of the decisions that have a known label, the number of decisions without
     one, and with ``return_mask`` the boolean mask of those decisions within ``links``.
     """
@@ -140,8 +142,11 @@ def match_links_to_labels(links: np.ndarray, labels: np.ndarray, threshold_m: fl
     pos = np.minimum(np.searchsorted(sk, key_l), len(sk) - 1)
     found = sk[pos] == key_l
     err = np.where(found, np.asarray(labels["err"], float)[order][pos], np.nan)
+    # the link-epoch's own threshold (link_labels: 3σ of the row's noise) where the labels carry one
+    thr = (np.asarray(labels["thr"], float)[order][pos] if labels.dtype.names and "thr" in labels.dtype.names
+           else np.full(len(err), float(threshold_m)))
     valid = found & ~np.isnan(err)
-    r = (np.asarray(links["cls"])[valid].astype(int), err[valid] > threshold_m, int((~valid).sum()))
+    r = (np.asarray(links["cls"])[valid].astype(int), err[valid] > thr[valid], int((~valid).sum()))
     return (*r, valid) if return_mask else r
 
 
