@@ -6,11 +6,12 @@ STAMP   := $(VENV)/.setup-stamp
 CONFIG  ?= configs/paper.toml
 ALGO    ?= atvfg
 SEED    ?= 1
+MILUV   ?= ../shared/data/miluv/cirObstacles_3_random_0
 export OMP_NUM_THREADS=1
 export OPENBLAS_NUM_THREADS=1
 export MKL_NUM_THREADS=1
 
-.PHONY: setup run dropout view test test-fast evaluate clean help
+.PHONY: setup run dropout miluv view test test-fast evaluate clean help
 help:            ## list targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*##/ —/'
 
@@ -27,6 +28,11 @@ run: setup       ## the paper scenario as a real multi-process Zenoh swarm (resu
 
 dropout: setup   ## configs/dropout.toml: UAV 7 killed at 400 s, restarted at 600 s
 	$(BIN)/swarmnav launch --config configs/dropout.toml --algo $(ALGO) --seed $(SEED)
+
+miluv: setup     ## real MILUV flight (MILUV=dir): import, evaluate every algorithm, replay through the Zenoh swarm
+	$(BIN)/swarmnav import-miluv $(MILUV) --out runs/miluv-dataset
+	$(BIN)/swarmnav evaluate --dataset runs/miluv-dataset --algos atvfg,fg,ins,central,fkf --seeds 0 --out runs/miluv-evaluate
+	$(BIN)/swarmnav launch --dataset runs/miluv-dataset --algo $(ALGO) --seed 0
 
 evaluate: setup  ## in-process evaluation of all algorithms on CONFIG
 	$(BIN)/swarmnav evaluate --config $(CONFIG) --algos atvfg,fg,fkf,ins,central --seeds $(SEED)

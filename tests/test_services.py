@@ -266,3 +266,13 @@ def test_multi_host_config_files_router_and_client(tmp_path):
     assert rc == 0, (tmp_path / "router.log").read_text()
     assert "listening on" in (tmp_path / "router.log").read_text()
     assert not _leftovers(tmp_path)
+
+
+def test_default_run_dir_is_one_level():
+    """A recorded dataset's name may contain '/' (MILUV: "miluv/<experiment>"): the default run
+    directory stays one level below runs/, so runs/latest (a link by base name) resolves."""
+    from services.commands.launch import default_run_dir
+
+    d = default_run_dir("miluv/cirObstacles_3_random_0")
+    assert d.parent == Path("runs") and d.name.endswith("-miluv-cirObstacles_3_random_0")
+    assert default_run_dir("paper").name.endswith("-paper") and default_run_dir("//").name.endswith("-run")

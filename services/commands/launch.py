@@ -13,11 +13,20 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 import time
 from pathlib import Path
 
 HELP = "run the swarm as a real multi-process Zenoh deployment (router, sensor-sim, UAV nodes, monitor)"
+
+
+def default_run_dir(name: str) -> Path:
+    """``runs/<timestamp>-<name>``, one directory level: a dataset name such as
+    ``miluv/cirObstacles_3_random_0`` becomes ``miluv-cirObstacles_3_random_0`` (runs/latest
+    points at it by its base name)."""
+    safe = re.sub(r"[^A-Za-z0-9_.-]+", "-", str(name)).strip("-.") or "run"
+    return Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{safe}"
 
 
 def _fault(s: str) -> tuple[int, float]:
@@ -69,7 +78,7 @@ def run(args) -> int:
     if args.out:
         run_dir = Path(args.out)
     else:
-        run_dir = Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{name}"
+        run_dir = default_run_dir(name)
     run_dir.mkdir(parents=True, exist_ok=True)
     run_dir = run_dir.resolve()
     if args.config:
