@@ -193,3 +193,21 @@ def test_central_anchor_range_and_own_tdoa_time_shift(smoke):
             assert max(errs) < 1e-12, errs
         else:
             assert min(errs[:3]) > 1e-6, errs
+
+
+def test_oracle_drops_by_each_rows_own_threshold(smoke):
+    """The oracle's drop rule is the scoring's: |fault_err| > 3σ of the row's own noise
+    (meta.fault_threshold_for); a 0.5 m error is faulty on a σ 0.1 row, clean on a σ 0.2 row."""
+    c = CentralEstimator(smoke.meta, {"central_use_rel": False}, initial_states(smoke, 1))
+    u = c.uavs[0]
+    c.anchors = {100: np.array([10.0, 0.0, 0.0])}
+    c.tags = {u: {0: np.zeros(3)}, 100: {0: np.zeros(3)}}
+    one = lambda *x: np.array(list(x))  # noqa: E731
+    lab = {"t": one(1.0, 1.0), "a": one(u, u), "b": one(100, 100), "tag_a": one(0, 0), "tag_b": one(0, 0),
+           "range": one(10.0, 10.0), "sigma": one(0.1, 0.2), "fault_kind": one(0, 0), "fault_err": one(0.5, 0.5)}
+    assert smoke.meta.uwb_sigma_m == 0.1 and abs(smoke.meta.fault_threshold_m - 0.3) < 1e-12
+    c._v_pred = {u: np.zeros(3)}
+    g = gtsam.NonlinearFactorGraph()
+    c._add_ranges(g, lab, 1, 1.0, {u})
+    assert g.size() == 1 and c.dropped == 1
+    assert np.allclose(g.at(0).noiseModel().sigmas(), [0.2])  # the σ 0.2 row is the one kept

@@ -143,6 +143,7 @@ def test_improvement_pct():
 def test_link_labels_merge_rows_per_epoch():
     """Rows merge per (epoch, pair); each link-epoch carries its own threshold, 3σ of its row's
     noise (fault_threshold_m × σ_row / uwb_sigma_m), and the scoring uses it."""
+    from swarmnav.dataset import DatasetMeta
     from swarmnav.evaluation import link_labels
 
     class _Meta:
@@ -150,6 +151,7 @@ def test_link_labels_merge_rows_per_epoch():
         epoch_dt_s = 1.0
         uwb_sigma_m = 0.2
         fault_threshold_m = 0.6
+        fault_threshold_for = DatasetMeta.fault_threshold_for
 
     class _DS:
         meta = _Meta()

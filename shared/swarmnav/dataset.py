@@ -171,6 +171,18 @@ class DatasetMeta(_M):
         """Epoch k in 0..n_epochs: t_start + k * epoch_dt. Epoch 0 is the initial state."""
         return self.t_start + k * self.epoch_dt_s
 
+    def fault_threshold_for(self, sigma) -> np.ndarray:
+        """Scoring threshold (m) of range rows of ranging σ ``sigma`` (m, scalar or array): 3σ of
+        that row's noise = fault_threshold_m × sigma / uwb_sigma_m; fault_threshold_m where sigma
+        is unknown (NaN, ≤ 0) or uwb_sigma_m is unset. The simulator's rows all carry uwb_sigma_m,
+        so there it is fault_threshold_m exactly; a recording's rows carry their own σ."""
+        sig = np.asarray(sigma, float)
+        thr = np.full(sig.shape, float(self.fault_threshold_m))
+        if self.uwb_sigma_m and self.uwb_sigma_m > 0:
+            ok = np.isfinite(sig) & (sig > 0)
+            thr[ok] = self.fault_threshold_m * (sig[ok] / self.uwb_sigma_m)
+        return thr
+
 
 Table = dict[str, np.ndarray]
 

@@ -161,10 +161,9 @@ def link_labels(ds: Dataset) -> np.ndarray:
     """Fault labels per (epoch, unordered pair): records (k, a, b, err, kind, thr).
 
     ``err`` = |fault_err| (m) and ``thr`` = the scoring threshold (m) of the link-epoch: it is
-    *faulty* when err > thr. thr = ``meta.fault_threshold_m`` (3σ of the ranging noise, DESIGN.md
-    §4) scaled by the row's σ over ``meta.uwb_sigma_m`` — i.e. 3σ of that row's own noise; the
-    simulator's rows all carry uwb_sigma_m (thr = fault_threshold_m exactly), a recording's carry
-    their own (MILUV: |bias| > 3·std, the issue's rule). Several range rows of one pair in one
+    *faulty* when err > thr. thr = ``meta.fault_threshold_for(row σ)``: 3σ of that row's own noise
+    (DESIGN.md §4; the simulator's rows all carry uwb_sigma_m, so thr = fault_threshold_m exactly;
+    MILUV: |bias| > 3·std, the issue's rule). Several range rows of one pair in one
     epoch (event-timestamped real data) are merged: the row with the largest err/thr counts, NaN
     (unknown) only if every row is unknown.
     """
@@ -179,11 +178,7 @@ def link_labels(ds: Dataset) -> np.ndarray:
     a = np.minimum(r["a"], r["b"])
     b = np.maximum(r["a"], r["b"])
     err = np.abs(r["fault_err"])
-    thr = np.full(len(err), float(meta.fault_threshold_m))
-    sig = np.asarray(r["sigma"], float)
-    if meta.uwb_sigma_m and meta.uwb_sigma_m > 0:
-        ok = np.isfinite(sig) & (sig > 0)
-        thr[ok] = meta.fault_threshold_m * (sig[ok] / meta.uwb_sigma_m)
+    thr = meta.fault_threshold_for(r["sigma"])
     best: dict[tuple[int, int, int], tuple[float, int, float]] = {}
     for kk, aa, bb, ee, kind, th in zip(k.tolist(), a.tolist(), b.tolist(), err.tolist(), r["fault_kind"].tolist(),
                                         thr.tolist()):

@@ -13,9 +13,10 @@ bounded). Per UAV and epoch k: Pose3 X, velocity V, bias B; factors:
   (``factors.tdoa_factor``, from ``EpochSlicer.tdoa_labels``; a dataset's optional ``tdoa`` table).
 
 **Oracle**: it reads the truth fault labels (``EpochSlicer.range_labels``, ``tdoa_labels``) and
-drops every range or range difference that is labelled faulty: ``fault_kind != NONE`` **or** ``|fault_err| > meta.fault_threshold_m``
-(the scoring definition of a faulty link-epoch, widened to every labelled fault episode, e.g. an
-interfered link whose bias happens to be small still has 5x noise). No estimator that is compared
+drops every range or range difference that is labelled faulty: ``fault_kind != NONE`` **or**
+``|fault_err| > meta.fault_threshold_for(row σ)`` (3σ of the row's noise: the scoring definition
+of a faulty link-epoch, widened to every labelled fault episode, e.g. an interfered link whose bias
+happens to be small still has 5x noise). No estimator that is compared
 with it may see these labels. The labels are the dataset's (for a passive row: its measured rdiff
 against truth, before the estimators' ``tdoa_offset_m``). Ranges are attached to the epoch's states;
 one taken at t_r inside the epoch between a UAV and an anchor, or a passive row of one UAV's tags
@@ -319,10 +320,10 @@ class CentralEstimator(SwarmEstimator):
 
     def _add_ranges(self, g: gtsam.NonlinearFactorGraph, lab: dict[str, np.ndarray], k: int, t: float,
                     live: set[int]) -> None:
-        thr = self.meta.fault_threshold_m
+        thr = self.meta.fault_threshold_for(lab.get("sigma", []))
         n = len(lab.get("range", []))
         for i in range(n):
-            if not keep_range(int(lab["fault_kind"][i]), float(lab["fault_err"][i]), thr):
+            if not keep_range(int(lab["fault_kind"][i]), float(lab["fault_err"][i]), float(thr[i])):
                 self.dropped += 1
                 continue
             a, b, z = int(lab["a"][i]), int(lab["b"][i]), float(lab["range"][i])
@@ -346,9 +347,9 @@ class CentralEstimator(SwarmEstimator):
         """Passive-listening range differences of the epoch (every end live or an anchor), the
         truly faulty ones removed like the ranges (oracle). A row of one UAV's tags and anchors
         is time-shifted like an anchor range."""
-        thr = self.meta.fault_threshold_m
+        thr = self.meta.fault_threshold_for(lab.get("sigma", []))
         for i in range(len(lab.get("rdiff", []))):
-            if not keep_range(int(lab["fault_kind"][i]), float(lab["fault_err"][i]), thr):
+            if not keep_range(int(lab["fault_kind"][i]), float(lab["fault_err"][i]), float(thr[i])):
                 self.dropped += 1
                 continue
             ends = []
