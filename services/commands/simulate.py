@@ -45,7 +45,7 @@ def run(args) -> int:
     ds.write(args.out)
     wall = time.perf_counter() - t0
     r = ds.tables["ranges"]
-    faulty = int((abs(r["fault_err"]) > ds.meta.fault_threshold_m).sum())
+    faulty = int((abs(r["fault_err"]) > ds.meta.fault_threshold_for(r["sigma"])).sum())
     n_uav = len(ds.meta.uav_ids())
     print(f"simulated '{ds.meta.name}' seed {ds.meta.seed}: {n_uav} UAVs, {ds.meta.n_epochs()} epochs, "
           f"{len(ds.tables['imu']['t'])} IMU samples, {len(ds.tables['gnss']['t'])} GNSS fixes, "
