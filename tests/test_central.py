@@ -211,3 +211,22 @@ def test_oracle_drops_by_each_rows_own_threshold(smoke):
     c._add_ranges(g, lab, 1, 1.0, {u})
     assert g.size() == 1 and c.dropped == 1
     assert np.allclose(g.at(0).noiseModel().sigmas(), [0.2])  # the σ 0.2 row is the one kept
+    # passive rows likewise
+    tdoa = {"t": one(1.0, 1.0), "node": one(u, u), "tag": one(0, 0), "init": one(100, 100), "tag_init": one(0, 0),
+            "resp": one(100, 100), "tag_resp": one(0, 0), "rdiff": one(0.0, 0.0), "sigma": one(0.1, 0.2),
+            "fault_kind": one(0, 0), "fault_err": one(0.5, 0.5)}
+    c.anchors[101] = np.array([0.0, 10.0, 0.0])
+    c.tags[101] = {0: np.zeros(3)}
+    tdoa["resp"] = one(101, 101)
+    g = gtsam.NonlinearFactorGraph()
+    c._add_tdoa(g, tdoa, 1, 1.0, {u})
+    assert g.size() == 1 and c.dropped == 2
+
+
+def test_simulated_labels_keep_the_single_threshold(smoke):
+    """The simulator's rows all carry uwb_sigma_m: the per-row threshold is fault_threshold_m
+    exactly, so simulated scoring is what it was before per-row thresholds."""
+    from swarmnav.evaluation import link_labels
+
+    lab = link_labels(smoke)
+    assert len(lab) and (lab["thr"] == smoke.meta.fault_threshold_m).all()

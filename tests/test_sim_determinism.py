@@ -93,3 +93,15 @@ def test_cli_help_lists_options(capsys):
     out = capsys.readouterr().out
     for s in ("--config", "--seed", "--out", "byte-identical"):
         assert s in out
+
+
+def test_write_over_a_dataset_removes_tables_it_lacks(tmp_path):
+    """Writing into an existing dataset directory (a re-import) leaves no stale optional table."""
+    import dataclasses
+
+    ds = simulate(load_config("configs/smoke.toml"), 1)
+    assert "gnss" in ds.tables
+    ds.write(tmp_path / "d")
+    assert (tmp_path / "d" / "gnss.parquet").exists()
+    dataclasses.replace(ds, tables={k: v for k, v in ds.tables.items() if k != "gnss"}).write(tmp_path / "d")
+    assert not (tmp_path / "d" / "gnss.parquet").exists() and "gnss" not in Dataset.read(tmp_path / "d").tables

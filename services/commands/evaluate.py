@@ -263,7 +263,7 @@ def run(args) -> int:
 
     # 3. metrics, report, files
     from swarmnav import metrics
-    from swarmnav.evaluation import link_labels, truth_at_epochs
+    from swarmnav.evaluation import FAULT_RULE, link_labels, truth_at_epochs
     from swarmnav.report import build_report, render_markdown, summary_table, validate_report
 
     from services.provenance import provenance
@@ -309,6 +309,7 @@ def run(args) -> int:
                        extra={"source": "config" if args.config else "dataset", "failed": failures,
                               "gnss_outages": [w.model_dump() for w in windows],
                               "fault_threshold_m": meta.fault_threshold_m,
+                              "fault_threshold_rule": FAULT_RULE,
                               "settings": {k: v for k, v in settings.items() if k != "delta_l_file"}})
     problems = validate_report(rep)
     if problems:

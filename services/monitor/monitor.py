@@ -20,7 +20,7 @@ from deploy.service import Inbox, finish_process, install_signals, parse_key, se
 from deploy.zconf import client_config
 from swarmnav.dataset import Dataset
 from swarmnav.estimators import registry
-from swarmnav.evaluation import RunResult, link_labels, truth_at_epochs
+from swarmnav.evaluation import FAULT_RULE, RunResult, link_labels, truth_at_epochs
 from swarmnav.wire import keys
 from swarmnav.wire import messages as M
 
@@ -283,7 +283,8 @@ class Monitor:
                            duration_s=self.meta.duration_s, algorithms={a: block}, detection=det, detection_single=single,
                            delta_l_m=dl, delta_h_m=dh,
                            provenance=provenance(self.a.config_sha256 or dataset_sha256(self.meta)),
-                           events=self.events, extra={"distributed": dist, "fault_threshold_m": self.meta.fault_threshold_m})
+                           events=self.events, extra={"distributed": dist, "fault_threshold_m": self.meta.fault_threshold_m,
+                                                          "fault_threshold_rule": FAULT_RULE})
         probs = validate_report(rep)
         if probs:
             self.log.error("report.json does not meet the contract: %s", probs)

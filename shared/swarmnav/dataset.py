@@ -230,6 +230,9 @@ class Dataset:
         for name, cols in TABLE_COLUMNS.items():
             tab = self.tables.get(name)
             if tab is None:
+                # an optional table this dataset does not have: a file left by an earlier write to
+                # the same directory (e.g. a re-import) must not come back with it
+                (out / f"{name}.parquet").unlink(missing_ok=True)
                 continue
             arrays = []
             for c in cols:

@@ -157,6 +157,9 @@ def run_algorithm(ds: Dataset, algo: str, seed: int, settings: dict,
     return res
 
 
+FAULT_RULE = "faulty when |fault_err| > fault_threshold_m * row sigma / uwb_sigma_m (3 sigma of the row's noise)"
+
+
 def link_labels(ds: Dataset) -> np.ndarray:
     """Fault labels per (epoch, unordered pair): records (k, a, b, err, kind, thr).
 
@@ -184,7 +187,7 @@ def link_labels(ds: Dataset) -> np.ndarray:
                                         thr.tolist()):
         key = (kk, aa, bb)
         old = best.get(key)
-        if old is None or (np.isnan(old[0]) and not np.isnan(ee)) or (ee / th > old[0] / old[2]):
+        if old is None or (np.isnan(old[0]) and not np.isnan(ee)) or (ee * old[2] > old[0] * th):  # ee/th > old
             best[key] = (ee, kind, th)
     out = np.zeros(len(best), dt)
     for i, (key, (ee, kind, th)) in enumerate(sorted(best.items())):

@@ -320,8 +320,8 @@ class CentralEstimator(SwarmEstimator):
 
     def _add_ranges(self, g: gtsam.NonlinearFactorGraph, lab: dict[str, np.ndarray], k: int, t: float,
                     live: set[int]) -> None:
-        thr = self.meta.fault_threshold_for(lab.get("sigma", []))
         n = len(lab.get("range", []))
+        thr = self.meta.fault_threshold_for(lab["sigma"]) if n else None  # 3σ of each row's noise
         for i in range(n):
             if not keep_range(int(lab["fault_kind"][i]), float(lab["fault_err"][i]), float(thr[i])):
                 self.dropped += 1
@@ -347,8 +347,9 @@ class CentralEstimator(SwarmEstimator):
         """Passive-listening range differences of the epoch (every end live or an anchor), the
         truly faulty ones removed like the ranges (oracle). A row of one UAV's tags and anchors
         is time-shifted like an anchor range."""
-        thr = self.meta.fault_threshold_for(lab.get("sigma", []))
-        for i in range(len(lab.get("rdiff", []))):
+        n = len(lab.get("rdiff", []))
+        thr = self.meta.fault_threshold_for(lab["sigma"]) if n else None  # 3σ of each row's noise
+        for i in range(n):
             if not keep_range(int(lab["fault_kind"][i]), float(lab["fault_err"][i]), float(thr[i])):
                 self.dropped += 1
                 continue
