@@ -5,6 +5,7 @@ Small ``log_*`` functions for one epoch (the live monitor), ``send_*`` bulk vers
 blueprint. Entity layout (algorithm names as in DESIGN.md §4)::
 
     /swarm/truth/uav<id>          Points3D  truth position
+    /swarm/anchors                Points3D  fixed UWB anchors (static; recorded datasets)
     /swarm/<algo>/uav<id>         Points3D  estimate (trails: the 3-D view shows the last 30 s)
     /links/<algo>                 LineStrips3D  links of the epoch coloured by class (H2 green, H1 amber, H0 red)
     /errors/<algo>/pos_3d/uav1    Scalars   3-D position error of UAV 1 (m)
@@ -76,7 +77,8 @@ def default_blueprint(algos: list[str]) -> rrb.Blueprint:
     """3-D truth vs estimates with trails, link graph, error time series, event log."""
     trail = rrb.VisibleTimeRange(TIMELINE_T, start=rrb.TimeRangeBoundary.cursor_relative(seconds=-TRAIL_S),
                                  end=rrb.TimeRangeBoundary.cursor_relative(seconds=0.0))
-    link_views = [rrb.Spatial3DView(origin="/", contents=[f"/links/{a}/**", "/swarm/truth/**"], name=f"links {a}")
+    link_views = [rrb.Spatial3DView(origin="/", contents=[f"/links/{a}/**", "/swarm/truth/**", "/swarm/anchors"],
+                                    name=f"links {a}")
                   for a in algos]
     return rrb.Blueprint(
         rrb.Horizontal(
@@ -95,6 +97,28 @@ def default_blueprint(algos: list[str]) -> rrb.Blueprint:
         ),
         collapse_panels=False,
     )
+
+
+def point_radius(positions) -> float:
+    """Radius (m) of a UAV point in the 3-D view: 1 % of the scene's extent (the diagonal of the
+    bounding box of ``positions``, any shape (..., 3), NaN ignored), between 2 cm and 2 m — the
+    paper's km-scale swarm keeps 2 m, an indoor flight a few metres across gets a few cm. Truth
+    points are drawn at 0.75 ×, link lines at 0.15 × this."""
+    p = np.asarray(positions, float).reshape(-1, 3)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if len(p) == 0:
+        return 2.0
+    return float(np.clip(0.01 * np.linalg.norm(p.max(axis=0) - p.min(axis=0)), 0.02, 2.0))
+
+
+def log_anchors(anchors: dict[int, np.ndarray], radius: float, rec: rr.RecordingStream | None = None) -> None:
+    """The fixed UWB anchors (node id -> ENU position, m) as static grey points."""
+    if not anchors:
+        return
+    ids = sorted(anchors)
+    rr.log("/swarm/anchors", rr.Points3D([np.asarray(anchors[i], float) for i in ids], radii=[radius],
+                                         colors=[(128, 128, 128)], labels=[f"anchor {i}" for i in ids]),
+           static=True, recording=rec)
 
 
 # -- per-epoch logging (live monitor) -------------------------------------------------------------
@@ -119,7 +143,8 @@ def log_position(algo: str, uav: int, pos, rec: rr.RecordingStream | None = None
                                             labels=[f"{uav}"]), recording=rec)
 
 
-def log_links(algo: str, positions: dict[int, np.ndarray], links, rec: rr.RecordingStream | None = None) -> None:
+def log_links(algo: str, positions: dict[int, np.ndarray], links, rec: rr.RecordingStream | None = None,
+              radius: float = 0.3) -> None:
     """The epoch's links as segments between the two UAVs' positions, coloured by class.
 
     ``links``: iterable of (a, b, cls) with cls 0/1/2 (H0/H1/H2)."""
@@ -128,7 +153,7 @@ def log_links(algo: str, positions: dict[int, np.ndarray], links, rec: rr.Record
         if a in positions and b in positions:
             strips.append(np.array([positions[a], positions[b]], float))
             colors.append(CLASS_COLORS.get(int(c), (128, 128, 128)))
-    rr.log(links_path(algo), rr.LineStrips3D(strips, colors=colors, radii=[0.3]), recording=rec)
+    rr.log(links_path(algo), rr.LineStrips3D(strips, colors=colors, radii=[radius]), recording=rec)
 
 
 def log_error(algo: str, quantity: str, who: str, value: float, rec: rr.RecordingStream | None = None) -> None:
@@ -171,14 +196,14 @@ def send_series(path: str, t: np.ndarray, k: np.ndarray, values: np.ndarray, rec
 
 
 def send_links(algo: str, t: np.ndarray, k: np.ndarray, segments: np.ndarray, classes: np.ndarray,
-               counts: np.ndarray, rec: rr.RecordingStream | None = None) -> None:
+               counts: np.ndarray, rec: rr.RecordingStream | None = None, radius: float = 0.3) -> None:
     """Link graph over time: ``segments`` (M,2,3) of all epochs concatenated in epoch order, their
     classes (M,) and the number of segments of each epoch ``counts`` (len(t),)."""
     segments = np.asarray(segments, float).reshape(-1, 2, 3)
     if len(segments) == 0:
         return
     path = links_path(algo)
-    rr.log(path, rr.LineStrips3D.from_fields(radii=[0.3]), static=True, recording=rec)
+    rr.log(path, rr.LineStrips3D.from_fields(radii=[radius]), static=True, recording=rec)
     lut = np.array([CLASS_COLORS.get(c, (128, 128, 128)) for c in range(3)] + [(128, 128, 128)], np.uint8)
     colors = lut[np.clip(np.asarray(classes, int), 0, 3)]
     cols = rr.LineStrips3D.columns(strips=segments, colors=colors).partition(np.asarray(counts, int))

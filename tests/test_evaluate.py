@@ -165,3 +165,21 @@ def test_evaluate_dataset_same_numbers_as_config(tmp_path, stand_ins):
     assert outs[0]["seeds"] == [3]
     assert outs[0]["algorithms"]["atvfg"]["pos_rmse_m"] == outs[1]["algorithms"]["atvfg"]["pos_rmse_m"]
     assert outs[0]["algorithms"]["atvfg"]["detection"] == outs[1]["algorithms"]["atvfg"]["detection"]
+
+
+def test_recording_scales_points_to_the_scene_and_draws_anchors(tmp_path):
+    """UAV points are 1 % of the scene's extent within [2 cm, 2 m] (a km-scale swarm keeps 2 m, an
+    indoor flight gets a few cm); anchors are one static entity with every anchor."""
+    from rerun.chunk import RrdReader
+
+    from services import recording as R
+
+    assert R.point_radius(np.array([[0, 0, 0], [3000.0, 4000.0, 0]])) == 2.0
+    assert R.point_radius(np.array([[0, 0, 0], [3.0, 4.0, 0], [np.nan, 1, 1]])) == pytest.approx(0.05)
+    assert R.point_radius(np.zeros((4, 3))) == 0.02 and R.point_radius(np.full((2, 3), np.nan)) == 2.0
+    rec = R.open_recording(tmp_path / "a.rrd")
+    R.log_anchors({100: np.array([1.0, 2.0, 3.0]), 105: np.array([-1.0, 0.0, 2.0])}, 0.05, rec)
+    R.log_anchors({}, 0.05, rec)  # no anchors (a simulated swarm): nothing logged
+    R.close_recording(rec)
+    chunks = [c for c in RrdReader(str(tmp_path / "a.rrd")).stream().to_chunks() if str(c.entity_path) == "/swarm/anchors"]
+    assert len(chunks) == 1 and chunks[0].is_static

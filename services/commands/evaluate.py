@@ -323,7 +323,7 @@ def run(args) -> int:
                    [truths[s] for s in seeds], windows, _DATASETS[s0], meta, dl)
     _write_tum(out, results, truths, seeds, ran)
     if not args.no_rrd:
-        _write_rrd(out / "evaluate.rrd", res0, truths[s0])
+        _write_rrd(out / "evaluate.rrd", res0, truths[s0], meta.anchors())
     wall = time.perf_counter() - t_wall
     log.info("done in %.1f s", wall)
     print(summary_table(rep))
@@ -416,7 +416,7 @@ def _write_tum(out: Path, results: dict, truths: dict, seeds: list[int], algos: 
                 (d / f"uav{int(u)}.tum").write_text(_tum_lines(tr.t, p, q))
 
 
-def _write_rrd(path: Path, res0: dict, truth) -> None:
+def _write_rrd(path: Path, res0: dict, truth, anchors: dict) -> None:
     """Every algorithm side by side (first seed): positions, link classes, error series."""
     import numpy as np
 
@@ -428,12 +428,15 @@ def _write_rrd(path: Path, res0: dict, truth) -> None:
         t = truth.t
         k = np.arange(1, len(t) + 1)
         R.log_styles(algos, rec)
+        # point sizes scaled to the scene (km-scale swarm or an indoor flight), anchors drawn once
+        radius = R.point_radius(np.r_[truth.pos.reshape(-1, 3), np.reshape(list(anchors.values()), (-1, 3))])
+        R.log_anchors(anchors, radius, rec)
         for j, u in enumerate(truth.uavs):
-            R.send_positions("truth", int(u), t, k, truth.pos[:, j], rec, radius=1.5)
+            R.send_positions("truth", int(u), t, k, truth.pos[:, j], rec, radius=0.75 * radius)
         uavs = list(truth.uavs)
         for a, r in res0.items():
             for j, u in enumerate(truth.uavs):
-                R.send_positions(a, int(u), t, k, r.pos[:, j], rec)
+                R.send_positions(a, int(u), t, k, r.pos[:, j], rec, radius=radius)
             pe = np.linalg.norm(r.pos - truth.pos, axis=2)
             ve = np.linalg.norm(r.vel - truth.vel, axis=2)
             if 1 in uavs:
@@ -441,7 +444,7 @@ def _write_rrd(path: Path, res0: dict, truth) -> None:
             R.send_series(R.error_path(a, "pos_3d", "swarm"), t, k, np.sqrt(np.nanmean(pe**2, axis=1)), rec)
             R.send_series(R.error_path(a, "vel_3d", "swarm"), t, k, np.sqrt(np.nanmean(ve**2, axis=1)), rec)
             if len(r.links):
-                R.send_links(a, t, k, *_link_segments(r, truth.uavs), rec=rec)
+                R.send_links(a, t, k, *_link_segments(r, truth.uavs), rec=rec, radius=0.15 * radius)
         R.set_epoch(0, float(truth.t[0]) - (truth.t[1] - truth.t[0] if len(truth.t) > 1 else 1.0), rec)
         R.log_event("evaluate", 0, 0.0, text=f"in-process evaluation of {', '.join(algos)} (seed "
                     f"{next(iter(res0.values())).seed if res0 else '-'}); no kills in-process", rec=rec, level="INFO")

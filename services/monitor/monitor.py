@@ -81,6 +81,9 @@ class Monitor:
         self.rec = R.open_recording(self.out / "swarm.rrd", recording_id=args.run,
                                     blueprint=R.default_blueprint([args.algo]))
         R.log_styles([args.algo, "truth"], rec=self.rec)
+        # point sizes scaled to the scene (km-scale swarm or an indoor flight), anchors drawn once
+        self.radius = R.point_radius(np.r_[self.truth.pos.reshape(-1, 3), np.reshape(list(self.meta.anchors().values()), (-1, 3))])
+        R.log_anchors(self.meta.anchors(), self.radius, rec=self.rec)
 
     def setup(self):
         ib = self.inbox
@@ -211,7 +214,8 @@ class Monitor:
             for j, u in enumerate(self.uavs):
                 m = new[:, j]
                 if m.any():
-                    R.send_positions(name, u, t[m], ks[m], arr[m, j], rec=rec)
+                    R.send_positions(name, u, t[m], ks[m], arr[m, j], rec=rec,
+                                     radius=self.radius * (0.75 if name == "truth" else 1.0))
             sent |= new
             sent_now.append(new)
         if 1 in self.uavs:  # UAV 1's error series: the estimates sent in this batch
@@ -230,11 +234,12 @@ class Monitor:
             cls = np.array([c for _, ss in rows for *_x, c in ss], int)
             kk = np.array([k for k, _ in rows], np.int64)
             if len(segs):
-                R.send_links(a, t[kk - 1], kk, segs, cls, np.array([len(ss) for _, ss in rows]), rec=rec)
+                R.send_links(a, t[kk - 1], kk, segs, cls, np.array([len(ss) for _, ss in rows]), rec=rec,
+                             radius=0.15 * self.radius)
             else:  # no link at all in the batch: still one (empty) row per epoch
                 for k in kk:
                     R.set_epoch(int(k), float(t[k - 1]), rec=rec)
-                    R.log_links(a, {}, [], rec=rec)
+                    R.log_links(a, {}, [], rec=rec, radius=0.15 * self.radius)
             self.link_rows = []
             self.sent_k = hi
 
