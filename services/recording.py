@@ -99,12 +99,12 @@ def default_blueprint(algos: list[str]) -> rrb.Blueprint:
     )
 
 
-def point_radius(positions) -> float:
+def point_radius(*positions) -> float:
     """Radius (m) of a UAV point in the 3-D view: 1 % of the scene's extent (the diagonal of the
-    bounding box of ``positions``, any shape (..., 3), NaN ignored), between 2 cm and 2 m — the
-    paper's km-scale swarm keeps 2 m, an indoor flight a few metres across gets a few cm. Truth
-    points are drawn at 0.75 ×, link lines at 0.15 × this."""
-    p = np.asarray(positions, float).reshape(-1, 3)
+    bounding box of all ``positions``: arrays or lists of any shape (..., 3), NaN ignored), between
+    2 cm and 2 m — the paper's km-scale swarm keeps 2 m, an indoor flight a few metres across gets
+    a few cm. Truth points are drawn at 0.75 ×, link lines at 0.15 × this."""
+    p = np.concatenate([np.asarray(x, float).reshape(-1, 3) for x in positions] or [np.zeros((0, 3))])
     p = p[np.all(np.isfinite(p), axis=1)]
     if len(p) == 0:
         return 2.0

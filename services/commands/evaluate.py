@@ -429,7 +429,7 @@ def _write_rrd(path: Path, res0: dict, truth, anchors: dict) -> None:
         k = np.arange(1, len(t) + 1)
         R.log_styles(algos, rec)
         # point sizes scaled to the scene (km-scale swarm or an indoor flight), anchors drawn once
-        radius = R.point_radius(np.r_[truth.pos.reshape(-1, 3), np.reshape(list(anchors.values()), (-1, 3))])
+        radius = R.point_radius(truth.pos, list(anchors.values()))
         R.log_anchors(anchors, radius, rec)
         for j, u in enumerate(truth.uavs):
             R.send_positions("truth", int(u), t, k, truth.pos[:, j], rec, radius=0.75 * radius)

@@ -82,7 +82,7 @@ class Monitor:
                                     blueprint=R.default_blueprint([args.algo]))
         R.log_styles([args.algo, "truth"], rec=self.rec)
         # point sizes scaled to the scene (km-scale swarm or an indoor flight), anchors drawn once
-        self.radius = R.point_radius(np.r_[self.truth.pos.reshape(-1, 3), np.reshape(list(self.meta.anchors().values()), (-1, 3))])
+        self.radius = R.point_radius(self.truth.pos, list(self.meta.anchors().values()))
         R.log_anchors(self.meta.anchors(), self.radius, rec=self.rec)
 
     def setup(self):

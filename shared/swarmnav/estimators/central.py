@@ -197,7 +197,6 @@ class CentralEstimator(SwarmEstimator):
         self._drag_started: set[int] = set()
         # initial rest phase, as graph.py (imu.InitialRest; same settings keys): V = 0 (σ
         # zupt_sigma_mps) while a UAV that started at rest is still by its IMU
-        self.zupt_sigma = float(s.get("zupt_sigma_mps", 0.02))
         self._rest = {u: InitialRest.from_settings(s, inits[u].vel, inits[u].vel_sigma, meta.earth.gravity_mps2)
                       for u in self.uavs}
         self.k = 0
@@ -258,7 +257,7 @@ class CentralEstimator(SwarmEstimator):
             if inp.altitude is not None and np.isfinite(inp.altitude):
                 g.add(_altitude_factor(X(u, k), float(inp.altitude), float(inp.altitude_sigma or 1.0)))
             if self._rest[u].update(inp):
-                g.add(gtsam.PriorFactorVector(V(u, k), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, self.zupt_sigma)))
+                g.add(self._rest[u].prior(V(u, k)))
             if u in self.drag:
                 self._add_drag(g, vals, ts, u, k, t, inp)
             if self.use_rel and len(inp.rel_target):

@@ -198,7 +198,6 @@ class GraphEstimator(NodeEstimator):
             self.gnss_scale = float(role_scale)
         # initial rest phase (zero-velocity prior): a node that starts at rest (|init.vel| and
         # init.vel_sigma <= rest_max_speed) holds V = 0 until its IMU first shows motion
-        self.zupt_sigma = float(s.get("zupt_sigma_mps", 0.02))
         self._rest = InitialRest.from_settings(s, init.vel, init.vel_sigma, float(np.linalg.norm(self.params.n_gravity)))
         self.anchor_time_shift = bool(s.get("anchor_time_shift", True))
         # multirotor rotor-drag model (nodes whose meta declares airframe "multirotor"): see
@@ -306,7 +305,7 @@ class GraphEstimator(NodeEstimator):
         if inp.altitude is not None:
             g.add(self._altitude_factor(X(n), inp.altitude, inp.altitude_sigma or 0.1))
         if self._rest.update(inp):  # until the first motion, for good
-            g.add(gtsam.PriorFactorVector(V(n), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, self.zupt_sigma)))
+            g.add(self._rest.prior(V(n)))
         self._v_pred = np.asarray(pred.velocity(), float)
         v = gtsam.Values()
         v.insert(X(n), pred.pose())
@@ -460,13 +459,9 @@ class GraphEstimator(NodeEstimator):
             (own if all(o == self.uav or o in self.anchors for o in ends) else coop).append(i)
         return own, coop
 
-    def _tdoa_sigma(self, inp: EpochInput, i: int) -> float:
-        """σ (m) of tdoa row i (factors.tdoa_row)."""
-        return tdoa_row(inp.tdoa_m[i], inp.tdoa_sigma[i], self.uwb_sigma, self.tdoa_scale, self.tdoa_offset)[1]
-
-    def _tdoa_value(self, inp: EpochInput, i: int) -> float:
-        """Measured rdiff (m) of tdoa row i less the passive path's offset (factors.tdoa_row)."""
-        return tdoa_row(inp.tdoa_m[i], inp.tdoa_sigma[i], self.uwb_sigma, self.tdoa_scale, self.tdoa_offset)[0]
+    def _tdoa_row(self, inp: EpochInput, i: int) -> tuple[float, float]:
+        """(rdiff less the passive path's offset, σ) in m of tdoa row i (factors.tdoa_row)."""
+        return tdoa_row(inp.tdoa_m[i], inp.tdoa_sigma[i], self.uwb_sigma, self.tdoa_scale, self.tdoa_offset)
 
     def _tdoa_ends(self, inp: EpochInput, i: int) -> tuple[tuple[int, int], ...]:
         """(node, tag) of listener, initiator, responder of tdoa row i."""
@@ -488,8 +483,8 @@ class GraphEstimator(NodeEstimator):
                 # anchor end moves by +v·(t − t_r) (as for anchor ranges)
                 dt = float(inp.t) - float(inp.tdoa_t[i])
                 ends = [(k, x) if k is not None else (k, x + dt * self._v_pred) for k, x in ends]
-            sig = self._tdoa_sigma(inp, i)
-            g.add(tdoa_factor(ends, self._tdoa_value(inp, i), self._anchor_noise(gtsam.noiseModel.Isotropic.Sigma(1, sig))))
+            z, sig = self._tdoa_row(inp, i)
+            g.add(tdoa_factor(ends, z, self._anchor_noise(gtsam.noiseModel.Isotropic.Sigma(1, sig))))
 
     @property
     def _at_rest(self) -> bool:
@@ -658,7 +653,8 @@ class GraphEstimator(NodeEstimator):
                     else:
                         break
                 else:
-                    rows_t.append((ends, self._tdoa_value(inp, i), self._tdoa_sigma(inp, i) ** 2))
+                    z, sig = self._tdoa_row(inp, i)
+                    rows_t.append((ends, z, sig ** 2))
             if rows_t:
                 c["tdoa"] = rows_t
         self._cache = c
@@ -892,6 +888,11 @@ class GraphEstimator(NodeEstimator):
             committed = np.trace(Lam) > 0 and (self.commit_weight > 0 or self.relink > 0)
             if self.relink > 0:
                 self._relinked_commit()  # this epoch's links join the re-fused window
+                if committed:
+                    # relinking reports the smoother's estimate (it holds the re-fused window and
+                    # atvfg's tdoa test on it) with its marginal covariance (ENU)
+                    Rm = self.pose.rotation().matrix()
+                    pos_cov = Rm @ self.smoother.marginalCovariance(X(self.n))[3:, 3:] @ Rm.T
             elif committed:
                 Lam, gsum = Lam * self.commit_weight, gsum * self.commit_weight
                 Lr = Lam + 1e-8 * np.eye(3)
@@ -901,15 +902,7 @@ class GraphEstimator(NodeEstimator):
                 g.add(gtsam.GPSFactor(X(self.n), z, gtsam.noiseModel.Gaussian.Information(Lr)))
                 self.smoother.update(g, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
                 self._read_estimate()
-            if committed and self.relink > 0:
-                # relinking reports the smoother's estimate: its marginal covariance (ENU)
-                Rm = self.pose.rotation().matrix()
-                pos_cov = Rm @ self.smoother.marginalCovariance(X(self.n))[3:, 3:] @ Rm.T
-            elif committed:
-                w = self.commit_weight
                 pos_cov = np.linalg.inv(self._info + Lam)
-                # (with relinking the smoother's estimate is reported, above: it holds the re-fused
-                # window and atvfg's tdoa test on it; the round solution has the epoch's links untested)
                 if self.report == "round":
                     pos = self.p.copy()
                     if self.report_cov == "round":
@@ -917,7 +910,7 @@ class GraphEstimator(NodeEstimator):
                     elif self.report_cov == "links":
                         # the split-CI bound (neighbour covariance × its links) without the
                         # commit weight, which only guards the smoother against feedback
-                        pos_cov = np.linalg.inv(self._info + Lam / w)
+                        pos_cov = np.linalg.inv(self._info + Lam / self.commit_weight)
             for o in self._nb:
                 res, cls = self._res_own.get(o, (float("nan"), int(LinkClass.H2_NORMAL)))
                 links.append(LinkInfo(o, LinkClass(cls), res, float(self._weights[o])))

@@ -72,9 +72,10 @@ class InitialRest:
     """
 
     def __init__(self, active: bool, gravity_mps2: float, gyro_std: float = 0.01, accel_std: float = 0.1,
-                 max_speed: float = 0.1):
+                 max_speed: float = 0.1, zupt_sigma: float = 0.02):
         self.active = bool(active)
         self.g0, self.gyro_std, self.accel_std, self.max_speed = float(gravity_mps2), gyro_std, accel_std, max_speed
+        self.zupt_sigma = float(zupt_sigma)  # m/s, σ of the zero-velocity prior (prior)
         self._f0: np.ndarray | None = None
         self._dv = np.zeros(3)
 
@@ -82,17 +83,23 @@ class InitialRest:
     def from_settings(cls, s: dict, init_vel: np.ndarray, init_vel_sigma: float, gravity_mps2: float) -> "InitialRest":
         """The estimators' detector: active when ``initial_rest_zupt`` (default on) and the node's
         initial velocity and its σ are both ≤ ``rest_max_speed_mps`` (0.1); thresholds
-        ``rest_gyro_std`` (0.01 rad/s) and ``rest_accel_std`` (0.1 m/s²)."""
+        ``rest_gyro_std`` (0.01 rad/s) and ``rest_accel_std`` (0.1 m/s²); prior σ ``zupt_sigma_mps``
+        (0.02 m/s)."""
         vmax = float(s.get("rest_max_speed_mps", 0.1))
         active = (bool(s.get("initial_rest_zupt", True)) and float(init_vel_sigma) <= vmax
                   and float(np.linalg.norm(init_vel)) <= vmax)
-        return cls(active, gravity_mps2, float(s.get("rest_gyro_std", 0.01)), float(s.get("rest_accel_std", 0.1)), vmax)
+        return cls(active, gravity_mps2, float(s.get("rest_gyro_std", 0.01)), float(s.get("rest_accel_std", 0.1)), vmax,
+                   float(s.get("zupt_sigma_mps", 0.02)))
 
     def update(self, inp: EpochInput) -> bool:
         """Feed one epoch's IMU samples; returns ``active`` after it."""
         if self.active and not self._still(inp):
             self.active = False
         return self.active
+
+    def prior(self, key_v: int) -> gtsam.NonlinearFactor:
+        """The zero-velocity prior on velocity key ``key_v`` (added while ``active``)."""
+        return gtsam.PriorFactorVector(key_v, np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, self.zupt_sigma))
 
     def _still(self, inp: EpochInput) -> bool:
         if len(inp.gyro) < 2:
