@@ -1,13 +1,19 @@
 """The process launcher/supervisor behind ``swarmnav launch``.
 
-Opens an embedded Zenoh router in this process (mode router, loopback listen endpoint on a
-free port, multicast scouting off), starts the monitor, N uav_node processes and the
-sensor-sim, each its own OS process (``python -m services.<name>``) with its own log file under
-``<run>/logs/``, OMP/BLAS threads = 1. It follows the sensor-sim's clock: a progress bar, and the
-scheduled faults (``--kill ID@T`` SIGKILLs the UAV's process, ``--restart ID@T`` starts it again
-with ``--rejoin``) at simulation time T, while the clock holds for them. Children get
-PR_SET_PDEATHSIG=SIGTERM so none outlives a killed launcher; on exit every child still running is
-sent SIGTERM, then SIGKILL after a grace period, and the router session is closed.
+Opens an embedded Zenoh router in this process (loopback listen endpoint on a free port, multicast
+scouting off) and starts the monitor, N uav_node processes and the sensor-sim, each its own OS
+process (``python -m services.<name>``) with its own log file under ``<run>/logs/``, OMP/BLAS
+threads = 1.
+
+Secure by default (deploy/security.py): the router listens on mutual TLS only and enforces an ACL
+generated from ``swarmnav.wire.keys``; every service connects with its own certificate
+(``<run>/security/<principal>.json5``). ``insecure=True`` gives a plain TCP router without ACL.
+
+Supervision: it follows the sensor-sim's clock (progress bar; scheduled ``--kill``/``--restart``
+holds at simulation time T). An essential service (sensor-sim, monitor) that dies before the run is
+done stops the run at once with a message naming it; a UAV node that dies unscheduled is reported
+(the swarm goes on without it). SIGINT/SIGTERM stops every child (SIGTERM, SIGKILL after a short
+grace) within seconds. Children get PR_SET_PDEATHSIG=SIGTERM so none outlives a killed launcher.
 """
 
 from __future__ import annotations
@@ -27,6 +33,9 @@ from swarmnav.wire import keys
 from swarmnav.wire import messages as M
 
 REPO = Path(__file__).resolve().parents[1]
+STOP_GRACE_S = 2.5  # SIGTERM -> SIGKILL for children when the run is stopped
+ESSENTIAL = ("sensor_sim", "monitor")
+PRINCIPAL = {"sensor_sim": "sensor-sim", "monitor": "monitor"}  # process name -> security principal
 
 
 def _pdeathsig():
@@ -60,7 +69,17 @@ class LaunchSpec:
     rate: float | None = None
     progress: bool = True
     timeout_s: float = 3600.0
+    secure: bool = True
     sim_extra: list[str] = field(default_factory=list)  # extra sensor_sim arguments (test hooks)
+
+
+@dataclass
+class LaunchResult:
+    status: int
+    processes: dict
+    stop_reason: str | None  # None: the run reached its end; else why it was stopped, in words
+    events: list[dict]
+    security: dict
 
 
 def _env() -> dict:
@@ -80,26 +99,35 @@ def start(proc: Proc) -> None:
     f.close()
 
 
-def stop_all(procs: list[Proc], grace: float = 8.0) -> None:
+def stop_all(procs: list[Proc], grace: float = STOP_GRACE_S) -> None:
+    """SIGTERM every live child, SIGKILL whoever is still there after ``grace`` seconds."""
     live = [p for p in procs if p.p is not None and p.p.poll() is None]
     for p in live:
-        p.p.send_signal(signal.SIGTERM)
+        try:
+            p.p.send_signal(signal.SIGTERM)
+        except ProcessLookupError:
+            pass
     end = time.monotonic() + grace
     for p in live:
         try:
-            p.p.wait(timeout=max(0.1, end - time.monotonic()))
+            p.p.wait(timeout=max(0.05, end - time.monotonic()))
         except subprocess.TimeoutExpired:
             p.p.kill()
             p.p.wait()
 
 
-def launch(spec: LaunchSpec) -> tuple[int, dict]:
-    """Run the swarm; returns (exit status, {process name: exit code summary})."""
-    import zenoh
+def describe_exit(rc: int | None) -> str:
+    if rc is None:
+        return "still running"
+    if rc < 0:
+        try:
+            return f"killed by {signal.Signals(-rc).name}"
+        except ValueError:
+            return f"killed by signal {-rc}"
+    return f"exit {rc}"
 
-    run_id = f"r{uuid.uuid4().hex[:10]}"
-    port = free_port()
-    router = f"tcp/127.0.0.1:{port}"
+
+def _build_procs(spec: LaunchSpec, router: str, run_id: str, sec) -> tuple[Proc, dict[int, Proc], Proc]:
     logs = spec.run_dir / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     py = sys.executable
@@ -108,13 +136,21 @@ def launch(spec: LaunchSpec) -> tuple[int, dict]:
     def pyrun(name: str) -> list[str]:
         return [py, "-m", "deploy.profrun", str(logs / f"{name}.prof")] if prof else [py]
 
-    common = ["--router", router, "--run", run_id]
-    mon = Proc("monitor", [*pyrun("monitor"), "-m", "services.monitor", *common, "--dataset", str(spec.dataset), "--seed", str(spec.seed),
-                           "--algo", spec.algo, "--out", str(spec.run_dir)]
+    def common(principal: str) -> list[str]:
+        c = ["--router", router, "--run", run_id]
+        path = sec.client_config_path(principal)
+        return c + (["--zenoh-config", str(path)] if path else [])
+
+    mon = Proc("monitor", [*pyrun("monitor"), "-m", "services.monitor", *common("monitor"), "--dataset", str(spec.dataset),
+                           "--seed", str(spec.seed), "--algo", spec.algo, "--out", str(spec.run_dir),
+                           "--security-mode", sec.mode, "--acl", "on" if sec.acl else "off"]
+               + [a for u, t in spec.kills for a in ("--kill", f"{u}@{t}")]
+               + [a for u, t in spec.restarts for a in ("--restart", f"{u}@{t}")]
                + (["--config-sha256", spec.config_sha256] if spec.config_sha256 else []), logs / "monitor.log")
-    nodes = {u: Proc(f"uav{u}", [*pyrun(f"uav{u}"), "-m", "services.uav_node", *common, "--uav", str(u), "--algo", spec.algo],
-                     logs / f"uav{u}.log") for u in spec.uavs}
-    sim_argv = [*pyrun("sensor_sim"), "-m", "services.sensor_sim", *common, "--dataset", str(spec.dataset), "--seed", str(spec.seed)]
+    nodes = {u: Proc(f"uav{u}", [*pyrun(f"uav{u}"), "-m", "services.uav_node", *common(f"uav-{u}"), "--uav", str(u),
+                                 "--algo", spec.algo], logs / f"uav{u}.log") for u in spec.uavs}
+    sim_argv = [*pyrun("sensor_sim"), "-m", "services.sensor_sim", *common("sensor-sim"), "--dataset", str(spec.dataset),
+                "--seed", str(spec.seed)]
     for u, t in spec.kills:
         sim_argv += ["--kill", f"{u}@{t}"]
     for u, t in spec.restarts:
@@ -122,12 +158,28 @@ def launch(spec: LaunchSpec) -> tuple[int, dict]:
     sim_argv += spec.sim_extra
     if spec.rate:
         sim_argv += ["--rate", str(spec.rate)]
-    sim = Proc("sensor_sim", sim_argv, logs / "sensor_sim.log")
-    procs = [mon, *nodes.values(), sim]
-    status = 0
-    t0 = time.monotonic()
+    return mon, nodes, Proc("sensor_sim", sim_argv, logs / "sensor_sim.log")
+
+
+def launch(spec: LaunchSpec) -> LaunchResult:
+    """Run the swarm; returns the exit status, per-process summary, why it stopped and the
+    launcher's own events (unscheduled deaths)."""
+    import zenoh
     from tqdm import tqdm
 
+    from deploy import security
+
+    run_id = f"r{uuid.uuid4().hex[:10]}"
+    port = free_port()
+    sec = security.for_run(spec.run_dir, run_id, spec.uavs, port, secure=spec.secure)
+    if not spec.secure:
+        print("swarmnav launch: WARNING: --insecure: the router accepts any client on "
+              f"{sec.endpoint} and enforces no access control (debugging only)", file=sys.stderr)
+    mon, nodes, sim = _build_procs(spec, sec.endpoint, run_id, sec)
+    procs = [mon, *nodes.values(), sim]
+    events: list[dict] = []
+    status, reason = 0, None
+    t0 = time.monotonic()
     bar = tqdm(total=spec.n_epochs, desc="epochs", unit="ep", disable=not spec.progress, file=sys.stderr)
     stopping = {"sig": None}
 
@@ -135,69 +187,93 @@ def launch(spec: LaunchSpec) -> tuple[int, dict]:
         stopping["sig"] = signum
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
-    with zenoh.open(router_config([router])) as session:
-        clock = session.declare_subscriber(keys.clock(run_id), zenoh.handlers.FifoChannel(10000))
-        try:
-            for p in procs:
-                start(p)
-            done = False
-            last_k = 0
-            while not done:
-                if stopping["sig"] is not None:
-                    status = 130
-                    break
-                if time.monotonic() - t0 > spec.timeout_s:
-                    print(f"swarmnav launch: timeout after {spec.timeout_s:.0f} s", file=sys.stderr)
-                    status = 1
-                    break
-                s = clock.try_recv()
-                if s is None:
-                    if sim.p.poll() is not None:
+    done = False
+    last_t = 0.0
+    try:
+        with zenoh.open(sec.router_config()) as session:
+            clock = session.declare_subscriber(keys.clock(run_id), zenoh.handlers.FifoChannel(10000))
+            try:
+                for p in procs:
+                    start(p)
+                last_k = 0
+                while not done:
+                    if stopping["sig"] is not None:
+                        status, reason = 130, f"stopped by {signal.Signals(stopping['sig']).name}"
                         break
-                    if mon.p.poll() is not None:
-                        print("swarmnav launch: monitor exited early", file=sys.stderr)
+                    if time.monotonic() - t0 > spec.timeout_s:
+                        status, reason = 1, f"timed out after {spec.timeout_s:.0f} s (--timeout)"
+                        break
+                    dead = [p for p in (sim, mon) if p.p.poll() is not None]
+                    if dead:
+                        p = dead[0]
                         status = 1
+                        reason = (f"the {p.name.replace('_', '-')} died ({describe_exit(p.p.returncode)}) at epoch "
+                                  f"{last_k} before the run was done: stopping the run (see {p.log})")
                         break
-                    time.sleep(0.02)
-                    continue
+                    for u, n in nodes.items():
+                        if n.p.poll() is not None and not n.expected_kill and not getattr(n, "_reported", False):
+                            n._reported = True
+                            ev = {"t": last_t, "kind": "process_died", "uav": u, "detail": describe_exit(n.p.returncode)}
+                            events.append(ev)
+                            print(f"\nswarmnav launch: UAV {u}'s process died unscheduled ({describe_exit(n.p.returncode)}) "
+                                  f"at epoch {last_k}; the swarm goes on without it (see {n.log})", file=sys.stderr)
+                    s = clock.try_recv()
+                    if s is None:
+                        time.sleep(0.02)
+                        continue
+                    try:
+                        c = M.decode(M.ClockMsg, s.payload.to_bytes())
+                    except M.WireError:
+                        continue
+                    last_t = c.t
+                    if c.k > last_k and not c.done:
+                        bar.update(c.k - last_k)
+                        last_k = c.k
+                    if c.hold == "kill" and c.hold_uav in nodes:
+                        n = nodes[c.hold_uav]
+                        if n.p.poll() is None:
+                            n.expected_kill = True
+                            n.p.send_signal(signal.SIGKILL)
+                            n.history.append(n.p.wait())
+                    elif c.hold == "restart" and c.hold_uav in nodes:
+                        n = nodes[c.hold_uav]
+                        if n.p.poll() is not None:
+                            if not n.expected_kill:
+                                n.history.append(n.p.returncode)
+                            n.expected_kill = False
+                            n._reported = False
+                            n.argv = n.argv + (["--rejoin"] if "--rejoin" not in n.argv else [])
+                            start(n)
+                    if c.done:
+                        done = True
+                bar.close()
+                if done:  # the run is over: let the services finish on their own (the monitor writes its report)
+                    _wait_finish(sim, mon, nodes, stopping)
+                else:
+                    print(f"\nswarmnav launch: {reason}", file=sys.stderr)
+            finally:
+                stop_all(procs)
                 try:
-                    c = M.decode(M.ClockMsg, s.payload.to_bytes())
-                except M.WireError:
-                    continue
-                if c.k > last_k and not c.done:
-                    bar.update(c.k - last_k)
-                    last_k = c.k
-                if c.hold == "kill" and c.hold_uav in nodes:
-                    n = nodes[c.hold_uav]
-                    if n.p.poll() is None:
-                        n.expected_kill = True
-                        n.p.send_signal(signal.SIGKILL)
-                        n.history.append(n.p.wait())
-                elif c.hold == "restart" and c.hold_uav in nodes:
-                    n = nodes[c.hold_uav]
-                    if n.p.poll() is not None:
-                        if not n.expected_kill:
-                            n.history.append(n.p.returncode)
-                        n.argv = n.argv + (["--rejoin"] if "--rejoin" not in n.argv else [])
-                        start(n)
-                if c.done:
-                    done = True
-            bar.close()
-            # the run is over: let the services finish on their own, then make sure
-            for p in [sim, mon, *nodes.values()]:
-                try:
-                    p.p.wait(timeout=60 if p is mon else 15)
-                except subprocess.TimeoutExpired:
+                    clock.undeclare()
+                except Exception:  # session already closing
                     pass
-        finally:
-            stop_all(procs)
-            clock.undeclare()
-            for s_, h in old.items():
-                signal.signal(s_, h)
+    finally:
+        for s_, h in old.items():
+            signal.signal(s_, h)
     summary = {}
     for p in procs:
         rc = p.p.returncode if p.p else None
         summary[p.name] = {"exit": rc, "killed_by_schedule": p.expected_kill, "earlier": p.history}
-        if rc not in (0,) and status == 0:
+        if rc != 0 and status == 0 and not p.expected_kill:
             status = 1
-    return status, summary
+    return LaunchResult(status, summary, reason, events, sec.report_block())
+
+
+def _wait_finish(sim: Proc, mon: Proc, nodes: dict[int, Proc], stopping: dict) -> None:
+    """After the clock's ``done``: every service ends by itself (the monitor writes its report);
+    bounded waits, and a signal to the launcher cuts them short."""
+    limits = [(sim, 15.0), (mon, 120.0)] + [(n, 15.0) for n in nodes.values()]
+    for p, lim in limits:
+        end = time.monotonic() + lim
+        while p.p.poll() is None and time.monotonic() < end and stopping["sig"] is None:
+            time.sleep(0.05)

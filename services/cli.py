@@ -17,6 +17,8 @@ COMMANDS = {
     "launch": "services.commands.launch",
     "calibrate": "services.commands.calibrate",
     "import-miluv": "services.commands.import_miluv",
+    "report": "services.commands.report",
+    "keys": "services.commands.keys",
 }
 
 

@@ -67,6 +67,11 @@ def open_recording(path, recording_id: str | None = None, blueprint: rrb.Bluepri
     return rec
 
 
+def flush_recording(rec: rr.RecordingStream) -> None:
+    """Push everything logged so far to the file (the live monitor calls it every epoch)."""
+    rec.flush()
+
+
 def close_recording(rec: rr.RecordingStream) -> None:
     """Flush and write the footer (call on normal exit and on SIGTERM)."""
     rec.flush()

@@ -46,10 +46,42 @@ def add_arguments(p):
     p.add_argument("--kill", type=_fault, action="append", default=[], metavar="ID@T", help="SIGKILL UAV ID's process at sim time T")
     p.add_argument("--restart", type=_fault, action="append", default=[], metavar="ID@T", help="restart UAV ID's process at sim time T")
     p.add_argument("--rate", type=float, default=None, help="real-time factor instead of lockstep")
-    p.add_argument("--out", default=None, help="run directory (default runs/<timestamp>-<scenario>/ + runs/latest)")
+    p.add_argument("--out", default=None, help="run directory (default runs/<timestamp>-<scenario>/ + runs/latest); "
+                   "refused if it already holds files (see --force)")
+    p.add_argument("--force", action="store_true", help="clear an existing run directory given with --out first")
+    p.add_argument("--insecure", action="store_true",
+                   help="debugging only: plain TCP router, no authentication, no access control (default: mutual TLS + ACL)")
     p.add_argument("--timeout", type=float, default=7200.0, help="wall-clock limit of the whole run (s)")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--garbage-at", type=int, default=None, help=argparse.SUPPRESS)  # test hook
+
+
+RUN_ARTEFACTS = {"report.json", "report.md", "swarm.rrd", "estimates.npz", "logs", "dataset", "security", "journal",
+                 "figures", "recording", "swarm.rrd.partial"}
+
+
+def prepare_run_dir(path: Path, force: bool) -> None:
+    """Refuse a run directory that already holds files (a new run must never mix with an old one);
+    ``force`` clears it first, but only when everything in it is a swarmnav run artefact."""
+    from swarmnav.errors import SwarmnavError
+
+    if path.exists() and not path.is_dir():
+        raise SwarmnavError(f"--out {path}: exists and is not a directory; choose another --out")
+    held = sorted(x.name for x in path.iterdir()) if path.is_dir() else []
+    if not held:
+        return
+    if not force:
+        raise SwarmnavError(f"--out {path} already holds a run ({', '.join(held[:6])}{', ...' if len(held) > 6 else ''}); "
+                            "choose a new directory, or add --force to clear this one first")
+    foreign = [h for h in held if h not in RUN_ARTEFACTS and not h.endswith((".rrd", ".log", ".png"))]
+    if foreign:
+        raise SwarmnavError(f"--out {path} holds files that are not a swarmnav run's ({', '.join(foreign[:6])}); "
+                            "--force clears only run directories: choose another --out")
+    import shutil
+
+    for h in held:
+        x = path / h
+        shutil.rmtree(x) if x.is_dir() and not x.is_symlink() else x.unlink()
 
 
 def run(args) -> int:
@@ -57,6 +89,8 @@ def run(args) -> int:
     from swarmnav.dataset import Dataset
     from swarmnav.errors import SwarmnavError
 
+    if args.rate is not None and not args.rate > 0:
+        raise SwarmnavError(f"--rate {args.rate:g}: must be a real-time factor > 0 (e.g. --rate 1), or leave it out for lockstep")
     kills, restarts = list(args.kill), list(args.restart)
     sha = None
     if args.config:
@@ -75,10 +109,8 @@ def run(args) -> int:
         ds = Dataset.read(args.dataset)
         name = ds.meta.name
         seed = args.seed if args.seed is not None else (ds.meta.seed or 0)
-    if args.out:
-        run_dir = Path(args.out)
-    else:
-        run_dir = default_run_dir(name)
+    run_dir = Path(args.out) if args.out else default_run_dir(name)
+    prepare_run_dir(run_dir, args.force)
     run_dir.mkdir(parents=True, exist_ok=True)
     run_dir = run_dir.resolve()
     if args.config:
@@ -101,28 +133,53 @@ def run(args) -> int:
     spec = LaunchSpec(run_dir=run_dir, dataset=dataset, seed=seed, algo=args.algo, uavs=uavs,
                       n_epochs=ds.meta.n_epochs(), kills=sorted(kills, key=lambda x: x[1]),
                       restarts=sorted(restarts, key=lambda x: x[1]), config_sha256=sha, rate=args.rate,
-                      progress=not args.no_progress, timeout_s=args.timeout,
+                      progress=not args.no_progress, timeout_s=args.timeout, secure=not args.insecure,
                       sim_extra=["--garbage-at", str(args.garbage_at)] if args.garbage_at else [])
     t0 = time.perf_counter()
-    status, summary = launch(spec)
+    res = launch(spec)
     wall = time.perf_counter() - t0
-    print(f"\n{'process':<12} {'exit':>5}  note")
-    for n, s in summary.items():
-        note = "killed by schedule, restarted" if s["killed_by_schedule"] else ""
-        print(f"{n:<12} {str(s['exit']):>5}  {note}")
+    return finish_report(run_dir, res, wall, ds.meta.duration_s)
+
+
+def finish_report(run_dir: Path, res, wall: float, duration_s: float) -> int:
+    """Add the launcher's figures to report.json, print the summary and say in words whether the run
+    is complete; the exit status is non-zero for any run that lost data or was stopped."""
+    status = res.status
+    print(f"\n{'process':<12} {'exit':>18}  note")
+    from deploy.launcher import describe_exit
+
+    for n, s in res.processes.items():
+        note = "killed by schedule" if s["killed_by_schedule"] else ("restarted" if s["earlier"] else "")
+        print(f"{n:<12} {describe_exit(s['exit']):>18}  {note}")
     rp = run_dir / "report.json"
     if rp.is_file():
-        from swarmnav.report import summary_table
+        from swarmnav.report import events_text, summary_table
 
         rep = json.loads(rp.read_text())
         rep.setdefault("distributed", {})["wall_s"] = wall
-        rep["distributed"]["realtime_factor"] = ds.meta.duration_s / wall if wall > 0 else None
-        rep["distributed"]["processes"] = summary
+        rep["distributed"]["realtime_factor"] = duration_s / wall if wall > 0 else None
+        rep["distributed"]["processes"] = res.processes
+        rep["distributed"]["stop_reason"] = res.stop_reason
+        rep.setdefault("security", res.security)
+        if res.events:
+            rep["events"] = sorted(rep.get("events", []) + res.events, key=lambda e: (e.get("t", 0), e.get("kind", "")))
+        if res.stop_reason:
+            rep["complete"] = False
         rp.write_text(json.dumps(rep, indent=1) + "\n")
         print(summary_table(rep))
-        print(f"events: {rep.get('events')}")
+        print(events_text(rep.get("events", [])))
+        if rep.get("complete") is not True:
+            status = status or 1
+            miss = rep.get("missing_by_uav") or {}
+            lost = ", ".join(f"UAV {u}: {n}" for u, n in sorted(miss.items(), key=lambda x: int(x[0])) if n)
+            print(f"INCOMPLETE RUN: {rep.get('estimates_received')} of {rep.get('estimates_expected')} expected estimates "
+                  f"received over {rep.get('epochs_recorded')} of {rep.get('epochs_expected')} epochs"
+                  + (f"; missing {lost}" if lost else "") + (f"; {res.stop_reason}" if res.stop_reason else "")
+                  + ". The figures above cover only what was received.", file=sys.stderr)
+        else:
+            print("complete: every expected estimate of every epoch was received")
     else:
-        print("no report.json was written (see the logs)", file=sys.stderr)
+        print("no report.json was written (see the logs)" + (f"; {res.stop_reason}" if res.stop_reason else ""), file=sys.stderr)
         status = status or 1
-    print(f"run directory: {run_dir} ({wall:.1f} s wall, {ds.meta.duration_s / wall:.1f}x real time)")
+    print(f"run directory: {run_dir} ({wall:.1f} s wall, {duration_s / wall:.1f}x real time)")
     return status

@@ -52,6 +52,12 @@ def parse_args(argv=None):
     p.add_argument("--epoch-timeout", type=float, default=60.0)
     p.add_argument("--startup-timeout", type=float, default=180.0)
     p.add_argument("--fault-timeout", type=float, default=60.0)
+    p.add_argument("--outage-timeout", type=float, default=120.0, help="give up when the bus stays down this long (s)")
+    p.add_argument("--rejoin-grace", type=float, default=10.0,
+                   help="after an outage, wait this long for the UAVs live before it to reconnect (s)")
+    p.add_argument("--requery-s", type=float, default=3.0,
+                   help="lockstep: query missing estimates and re-send the epoch after this long without them (s)")
+    p.add_argument("--done-timeout", type=float, default=15.0, help="repeat 'done' until every service left, at most this long (s)")
     p.add_argument("--garbage-at", type=int, default=None,
                    help="test hook: at this epoch publish garbage on every key the nodes listen to")
     p.add_argument("--no-monitor", action="store_true", help="do not wait for a monitor at start")
@@ -80,6 +86,8 @@ class SensorSim:
         self.ds = Dataset.read(args.dataset)
         self.meta = self.ds.meta
         self.uavs = self.meta.uav_ids()
+        self.uav_set = set(self.uavs)
+        self.lost: list[tuple[int, int]] = []  # (first, last) epochs played into an outage (real-time mode)
         self.slicer = EpochSlicer(self.ds)
         self.inits = initial_states(self.ds, args.seed)
         self.truth = truth_at_epochs(self.ds)
@@ -112,8 +120,10 @@ class SensorSim:
         self.pub_clock = self.s.declare_publisher(keys.clock(self.run), congestion_control=bl)
         self.token = self.s.liveliness().declare_token(keys.alive(self.run, "sensor_sim", 0))
 
-    def restart_init(self, u: int) -> M.InitMsg:
-        return M.init_to_msg(u, restart_initial_state(self.truth, self.inits, self.uavs, self.a.seed, u, max(self.k, 1)))
+    def restart_init(self, u: int, at: int | None = None) -> M.InitMsg:
+        """Coarse alignment of UAV u restarted before epoch ``at`` (default: the current epoch)."""
+        k = min(max(at if at is not None else self.k, 1), self.K)
+        return M.init_to_msg(u, restart_initial_state(self.truth, self.inits, self.uavs, self.a.seed, u, k))
 
     def handle(self, tag, item):
         if tag == "q":
@@ -122,8 +132,10 @@ class SensorSim:
                 if kk.kind == "meta":
                     item.reply(keys.meta(self.run), self.meta_msg)
                 elif kk.kind == "uav" and kk.topic == "init" and kk.uav in self.inits:
-                    restart = "restart=1" in str(item.parameters)
-                    m = self.restart_init(kk.uav) if restart else M.init_to_msg(kk.uav, self.inits[kk.uav])
+                    params = dict(p.split("=", 1) for p in str(item.parameters).split(";") if "=" in p)
+                    restart = params.get("restart") == "1"
+                    at = int(params["k"]) if params.get("k", "").isdigit() else None
+                    m = self.restart_init(kk.uav, at) if restart else M.init_to_msg(kk.uav, self.inits[kk.uav])
                     item.reply(keys.uav(self.run, kk.uav, "init"), m.encode())
             except Exception as e:
                 self.rejects.add("query", M.WireError("bad_query", str(e)))
@@ -138,6 +150,9 @@ class SensorSim:
 
             put = item.kind == zenoh.SampleKind.PUT
             if kk.topic == "uav":
+                if kk.uav not in self.uav_set:  # a token for a UAV the dataset does not have: never a participant
+                    self.rejects.add("alive", M.WireError("unknown_uav", f"liveliness token of UAV {kk.uav}, not in the dataset {self.uavs}"))
+                    return
                 (self.alive_uav.add if put else self.alive_uav.discard)(kk.uav)
             elif kk.topic == "monitor":
                 self.monitor_alive = put
@@ -148,7 +163,8 @@ class SensorSim:
             except M.WireError as e:
                 self.rejects.add("estimate", e)
                 return
-            self.estimates.setdefault(m.k, set()).add(m.uav)
+            if m.uav in self.uav_set:
+                self.estimates.setdefault(m.k, set()).add(m.uav)
 
     def pump(self, timeout: float) -> None:
         it = self.inbox.get(timeout)
@@ -158,11 +174,12 @@ class SensorSim:
         if self.inbox.stop.is_set():
             raise KeyboardInterrupt
 
-    def wait_until(self, cond, timeout: float, what: str) -> bool:
+    def wait_until(self, cond, timeout: float, what: str, quiet: bool = False) -> bool:
         dl = Deadline(timeout)
         while not cond():
             if dl.passed():
-                self.log.warning("timeout (%.0f s) waiting for %s", timeout, what)
+                if not quiet:
+                    self.log.warning("timeout (%.0f s) waiting for %s", timeout, what)
                 return False
             self.pump(min(0.2, dl.left() + 1e-3))
         return True
@@ -183,6 +200,82 @@ class SensorSim:
         t = self.meta.epoch_time(k)
         self.pub_clock.put(M.ClockMsg(k=k, t=t, n_epochs=self.K, **kw).encode())
 
+    # -- connectivity ------------------------------------------------------------------------
+    def connected(self) -> bool:
+        """True while this session reaches a router and the monitor's token is seen (a router
+        outage deletes every remote token at once, the monitor's included)."""
+        try:
+            up = bool(list(self.s.info.routers_zid()))
+        except Exception:  # session closing
+            return False
+        return up and (self.monitor_alive or self.a.no_monitor)
+
+    def ride_out_outage(self, k: int) -> bool:
+        """If the bus is down, wait for it to come back (and for the UAVs live before the outage, up to
+        ``--rejoin-grace``); returns True if there was an outage. Never plays into the void."""
+        if self.connected():
+            return False
+        before = set(self.part_prev)
+        t0 = time.monotonic()
+        self.log.warning("epoch %d: lost the router/monitor (bus outage): holding the clock", k)
+        while not self.connected():
+            if time.monotonic() - t0 > self.a.outage_timeout:
+                raise OutageError(f"the bus stayed down for {self.a.outage_timeout:.0f} s at epoch {k}")
+            self.pump(0.1)
+        self.wait_until(lambda: before <= self.alive_uav, self.a.rejoin_grace, f"UAVs {sorted(before)} to reconnect")
+        self.log.warning("epoch %d: bus back after %.1f s; live UAVs %s", k, time.monotonic() - t0, sorted(self.alive_uav))
+        return True
+
+    def recover_estimates(self, k: int, missing: list[int]) -> None:
+        """Ask the nodes' state queryables for epoch-k estimates that never arrived (published while
+        the bus was down); replies carry the node's recent estimates."""
+        for u in missing:
+            try:
+                for rep in self.s.get(keys.uav(self.run, u, "state") + f"?k={k};r=0", timeout=1.0):
+                    if rep.ok is None:
+                        continue
+                    h = M.decode(M.HistoryMsg, rep.ok.payload.to_bytes(), uav=u)
+                    for e in h.estimates:
+                        if e.uav == u:
+                            self.estimates.setdefault(e.k, set()).add(u)
+            except M.WireError as e:
+                self.rejects.add("state-query", e)
+
+    def publish_epoch(self, k: int, part: list[int], only: list[int] | None = None) -> None:
+        t = self.meta.epoch_time(k)
+        self.clock(k, participants=part)
+        for u in (part if only is None else only):
+            j = self.uavs.index(u)
+            tm = M.TruthMsg(uav=u, k=k, t=t, pos=list(map(float, self.truth.pos[k - 1, j])),
+                            vel=list(map(float, self.truth.vel[k - 1, j])), quat=list(map(float, self.truth.quat[k - 1, j])))
+            self.pub_truth[u].put(tm.encode())
+            b = M.encode_input(self.slicer.epoch(k, u), part)
+            self.bytes_per_uav += len(b)
+            self.pub_input[u].put(b)
+
+    def wait_estimates(self, k: int, part: list[int]) -> None:
+        """Lockstep: wait until every participant of epoch k has published its estimate or lost its
+        token; after an outage re-send the epoch to whoever has not answered and recover estimates
+        sent into the outage by query."""
+        dl = Deadline(self.a.epoch_timeout)
+        last_try = time.monotonic()
+        while True:
+            missing = [u for u in part if u not in self.estimates.get(k, ()) and u in self.alive_uav]
+            if not missing:
+                return
+            if self.ride_out_outage(k) or time.monotonic() - last_try > self.a.requery_s:
+                last_try = time.monotonic()
+                self.recover_estimates(k, missing)
+                missing = [u for u in part if u not in self.estimates.get(k, ()) and u in self.alive_uav]
+                if missing:
+                    self.log.info("epoch %d: re-sending the epoch to %s (no estimate yet)", k, missing)
+                    self.publish_epoch(k, part, only=missing)
+                continue
+            if dl.passed():
+                self.log.warning("timeout (%.0f s) waiting for estimates of epoch %d from %s", self.a.epoch_timeout, k, missing)
+                return
+            self.pump(min(0.2, dl.left() + 1e-3))
+
     def play(self) -> int:
         a = self.a
         need_mon = not a.no_monitor
@@ -192,9 +285,12 @@ class SensorSim:
         kills = sorted((t, u) for u, t in a.kill)
         restarts = sorted((t, u) for u, t in a.restart)
         t_wall0 = time.monotonic()
-        for k in range(1, self.K + 1):
+        self.part_prev = sorted(self.alive_uav)
+        k = 1
+        while k <= self.K:
             self.k = k
             t = self.meta.epoch_time(k)
+            self.ride_out_outage(k)
             while kills and kills[0][0] <= t + 1e-9:
                 _, u = kills.pop(0)
                 self.clock(k, hold="kill", hold_uav=u, participants=sorted(self.alive_uav))
@@ -207,33 +303,51 @@ class SensorSim:
                 due = t_wall0 + (t - self.meta.t_start) / a.rate
                 while time.monotonic() < due:
                     self.pump(max(0.0, min(0.05, due - time.monotonic())))
+                if not self.connected():  # real time goes on: the epochs of the outage are lost, and said so
+                    t_out = time.monotonic()
+                    self.ride_out_outage(k)
+                    now_k = min(self.K, max(k, int((time.monotonic() - t_wall0) * a.rate / self.meta.epoch_dt) + 1))
+                    if now_k > k:
+                        self.lost.append((k, now_k - 1))
+                        self.log.warning("epochs %d-%d lost in a %.1f s bus outage (real-time mode)", k, now_k - 1,
+                                         time.monotonic() - t_out)
+                        self.clock(now_k, participants=sorted(self.alive_uav), lost=[k, now_k - 1])
+                        k = now_k
+                        continue
             else:
                 self.pump(0)
             part = sorted(self.alive_uav)
+            self.part_prev = part
             if a.garbage_at == k:
                 self.garbage(k)
-            self.clock(k, participants=part)
-            for u in part:
-                j = self.uavs.index(u)
-                tm = M.TruthMsg(uav=u, k=k, t=t, pos=list(map(float, self.truth.pos[k - 1, j])),
-                                vel=list(map(float, self.truth.vel[k - 1, j])), quat=list(map(float, self.truth.quat[k - 1, j])))
-                self.pub_truth[u].put(tm.encode())
-                b = M.encode_input(self.slicer.epoch(k, u), part)
-                self.bytes_per_uav += len(b)
-                self.pub_input[u].put(b)
+            self.publish_epoch(k, part)
             if not a.rate:
-                self.wait_until(lambda: all(u in self.estimates.get(k, ()) or u not in self.alive_uav for u in part),
-                                a.epoch_timeout, f"estimates of epoch {k}")
+                self.wait_estimates(k, part)
             self.estimates.pop(k - 2, None)
+            k += 1
         if a.rate:
             self.wait_until(lambda: all(u in self.estimates.get(self.K, ()) or u not in self.alive_uav for u in self.uavs),
                             a.epoch_timeout, "the last estimates")
-        self.clock(self.K, done=True, participants=sorted(self.alive_uav))
-        self.log.info("done: %d epochs in %.1f s wall; sensor bytes per UAV-epoch %.0f; rejected %d %s", self.K,
-                      time.monotonic() - t_wall0, self.bytes_per_uav / max(1, self.K * len(self.uavs)),
-                      self.rejects.total, self.rejects.as_dict())
-        time.sleep(0.5)  # let the clock message reach everyone before the session closes
+        self.finish_clock()
+        self.log.info("done: %d epochs in %.1f s wall; sensor bytes per UAV-epoch %.0f; lost epochs %s; rejected %d %s",
+                      self.K, time.monotonic() - t_wall0, self.bytes_per_uav / max(1, self.K * len(self.uavs)),
+                      self.lost or "none", self.rejects.total, self.rejects.as_dict())
         return 0
+
+    def finish_clock(self) -> None:
+        """Publish ``done`` until every node and the monitor have gone (they exit on it), so a done
+        sent into an outage is repeated; bounded by ``--done-timeout``."""
+        dl = Deadline(self.a.done_timeout)
+        while True:
+            self.clock(self.K, done=True, participants=sorted(self.alive_uav))
+            self.wait_until(lambda: not self.alive_uav and not self.monitor_alive, 1.0, "", quiet=True)
+            if (not self.alive_uav and not self.monitor_alive) or dl.passed():
+                break
+        time.sleep(0.2)  # let the last clock message leave before the session closes
+
+
+class OutageError(RuntimeError):
+    """The bus stayed down longer than --outage-timeout."""
 
 
 def main(argv=None) -> int:
@@ -251,6 +365,9 @@ def main(argv=None) -> int:
         except KeyboardInterrupt:
             log.info("stopped by signal at epoch %d", sim.k)
             rc = 0
+        except OutageError as e:
+            log.error("%s: giving up", e)
+            rc = 4
         finally:
             sim.inbox.stop.set()
             undeclare_all(getattr(sim, "subs", []))

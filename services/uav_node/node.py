@@ -32,6 +32,16 @@ from swarmnav.wire import keys
 from swarmnav.wire import messages as M
 
 HISTORY = 20
+EST_HISTORY = 64  # estimates kept for the state queryable (recovered by the sensor-sim/monitor after an outage)
+RECONNECT_GRACE_S = 3.0  # after the bus comes back, peers' tokens reappear within ~1 s: wait for them
+
+
+class StaleEpoch(RuntimeError):
+    """The swarm finished later epochs without this node: the epoch in hand is stale."""
+
+
+class OutageError(RuntimeError):
+    """The bus stayed down longer than --outage-timeout."""
 
 
 def parse_args(argv=None):
@@ -43,6 +53,11 @@ def parse_args(argv=None):
     p.add_argument("--rejoin", action="store_true", help="restarted node: bootstrap from peers")
     p.add_argument("--zenoh-config", default=None)
     p.add_argument("--startup-timeout", type=float, default=120.0)
+    p.add_argument("--sim-lost-timeout", type=float, default=30.0,
+                   help="exit (status 4) when the sensor-sim has been gone this long while the bus is up (s)")
+    p.add_argument("--outage-timeout", type=float, default=120.0, help="exit (status 4) when the bus stays down this long (s)")
+    p.add_argument("--envelope-m", type=float, default=M.ENVELOPE_M,
+                   help="reject peer states farther than this from the local origin (m, any axis)")
     return p.parse_args(argv)
 
 
@@ -56,8 +71,16 @@ class Node:
         self.inputs: dict[int, tuple] = {}  # k -> (EpochInput, participants)
         self.states: dict[tuple[int, int], dict[int, NodeState]] = {}  # (k, r) -> uav -> state
         self.history: deque[bytes] = deque(maxlen=HISTORY)  # our last state frames
-        self.est_history: deque[M.EstimateMsg] = deque(maxlen=5)
+        self.est_history: deque[M.EstimateMsg] = deque(maxlen=EST_HISTORY)
         self.k_done = 0  # last completed epoch
+        self.inc = 0  # incarnation: bumped at every (re-)bootstrap, carried in the estimates
+        self.need_bootstrap = bool(args.rejoin)  # the next epoch starts from a fresh alignment + peers
+        self.newest_peer_k = 0  # newest epoch seen in a peer's state (the swarm moved on without us?)
+        self.sim_alive = False
+        self.sim_lost_at: float | None = None  # monotonic time the sensor-sim's token went away
+        self.offline_since: float | None = None  # monotonic time this session was last seen without a router
+        self.online_at = 0.0  # monotonic time connectivity was last seen restored
+        self.duplicates = 0  # re-sent inputs of epochs already done (after an outage): ignored
         self.done = False
         self.bytes_out = 0
         self.waiting = None  # ((k, r), peers) the loop waits for in gather()
@@ -83,6 +106,7 @@ class Node:
         self.code = code_digest()  # right after the imports: the estimator code this process runs
         mm = self.query_one(keys.meta(self.run), M.MetaMsg, a.startup_timeout)
         self.meta = DatasetMeta.model_validate(mm.meta)
+        self.uav_ids = set(self.meta.uav_ids())
         self.seed = mm.seed
         self.settings = registry.settings_for_dataset(self.meta)
         self.rounds = int(self.settings.get("rounds", 3))
@@ -99,7 +123,7 @@ class Node:
             # peers only: our own publications are not echoed back to us
             self.s.declare_subscriber(keys.uav_all(self.run, "state"), ib.channel(), allowed_origin=zenoh.Locality.REMOTE),
             self.s.declare_subscriber(keys.clock(self.run), ib.channel()),
-            self.s.liveliness().declare_subscriber(keys.alive_all(self.run, "uav"), ib.channel(), history=True),
+            self.s.liveliness().declare_subscriber(keys.alive_all(self.run), ib.channel(), history=True),
             self.s.declare_queryable(keys.uav(self.run, self.uav, "state"), ib.channel()),
         ]
         for tag, sub in zip(("own", "state", "clock", "alive", "query"), self.subs):
@@ -120,10 +144,14 @@ class Node:
                 kk = keys.parse(str(item.key_expr))
             except ValueError:
                 return
-            if kk.uav == self.uav:
-                return
             import zenoh
 
+            if kk.topic == "sensor_sim":
+                self.sim_alive = item.kind == zenoh.SampleKind.PUT
+                self.sim_lost_at = None if self.sim_alive else time.monotonic()
+                return
+            if kk.topic != "uav" or kk.uav == self.uav:
+                return
             if item.kind == zenoh.SampleKind.PUT:
                 self.dead.discard(kk.uav)
             else:
@@ -149,11 +177,15 @@ class Node:
         if kk.topic != "input":
             return
         try:
-            inp, part = M.decode_input(payload, uav=self.uav, min_k=self.k_done + 1)
+            inp, part = M.decode_input(payload, uav=self.uav)
         except M.WireError as e:
             self.rejects.add("input", e)
             return
-        self.inputs[inp.k] = (inp, part)
+        if inp.k <= self.k_done:  # an epoch re-sent after an outage, already done here
+            self.duplicates += 1
+            return
+        # participants are the sensor-sim's to decide; ids the dataset does not have are ignored
+        self.inputs[inp.k] = (inp, [u for u in part if u in self.uav_ids])
 
     def on_state(self, item) -> bool:
         """Peer state sample, in the state channel's pump thread (light: decode + store). True
@@ -165,10 +197,14 @@ class Node:
         if kk.uav == self.uav:
             return False  # our own publication
         try:
-            m = M.decode_state(item.payload.to_bytes(), uav=kk.uav, min_k=self.k_done + 1)
+            m = M.decode_state(item.payload.to_bytes(), uav=kk.uav, envelope_m=self.a.envelope_m)
         except M.WireError as e:
             self.rejects.add("state", e)
             return False
+        if m.k <= self.k_done:  # late state of an epoch we finished (not hostile: peers may lag)
+            return False
+        if m.k > self.newest_peer_k:
+            self.newest_peer_k = m.k
         have = self.states.setdefault((m.k, m.r), {})
         have[m.uav] = m
         w = self.waiting
@@ -224,25 +260,56 @@ class Node:
             except M.WireError as e:
                 self.rejects.add("state-query", e)
 
+    def connected(self) -> bool:
+        """This session reaches a router and the sensor-sim is there (a router outage deletes every
+        remote liveliness token at once: peers that vanish then are not dead)."""
+        now = time.monotonic()
+        try:
+            up = bool(list(self.s.info.routers_zid()))
+        except Exception:  # session closing
+            up = False
+        if up and self.sim_alive:
+            if self.offline_since is not None:
+                self.offline_since = None
+                self.online_at = now
+            return True
+        if self.offline_since is None:
+            self.offline_since = now
+        return False
+
+    def peer_gone(self, u: int) -> bool:
+        """Peer u's token went away while this node was connected (a genuine death or freeze), not
+        in a bus outage: waited for again for RECONNECT_GRACE_S after connectivity returns."""
+        if u not in self.dead:
+            return False
+        return self.connected() and time.monotonic() - self.online_at > RECONNECT_GRACE_S
+
     def gather(self, k: int, r: int, participants: set[int]) -> dict[int, NodeState]:
-        """Wait for state (k, r) of every participant still live; re-query after peer_timeout."""
+        """Wait for state (k, r) of every participant still live; re-query after peer_timeout.
+        Raises StaleEpoch when the swarm has moved on without this node (a peer's state two epochs
+        ahead: they completed epoch k+1 without us, so we were frozen or cut off)."""
         t0 = time.monotonic()
         requeried = 0.0
         while True:
             self.inbox.ev.clear()  # before looking: a wake-up from here on is not lost
+            if self.newest_peer_k >= k + 2:
+                raise StaleEpoch(f"epoch {k}: peers are already at epoch {self.newest_peer_k}")
             have = self.states.get((k, r), {})
             # a participant is waited for until its liveliness token goes away (the sensor-sim saw
             # it live when it opened the epoch, so a token we have not seen yet is not a death)
-            expect = participants - self.dead - {self.uav}
+            expect = {u for u in participants if u != self.uav and not (u in self.dead and self.peer_gone(u))}
             self.waiting = ((k, r), expect)  # the state pump wakes us once all of these are in
             missing = sorted(expect - set(have))
             if not missing:
                 break
             waited = time.monotonic() - t0
-            if waited > self.peer_timeout * 10:
+            offline = not self.connected()
+            if offline and time.monotonic() - self.offline_since > self.a.outage_timeout:
+                raise OutageError(f"no router/sensor-sim for {self.a.outage_timeout:.0f} s")
+            if waited > self.peer_timeout * 10 and not offline:
                 self.log.warning("epoch %d round %d: giving up on live peers %s after %.1f s", k, r, missing, waited)
                 break
-            if waited > self.peer_timeout and waited - requeried > self.peer_timeout:
+            if waited > self.peer_timeout and waited - requeried > self.peer_timeout and not offline:
                 self.log.warning("epoch %d round %d: re-querying states of %s", k, r, missing)
                 self.requery(k, r, missing)
                 requeried = waited
@@ -253,13 +320,36 @@ class Node:
         have = self.states.get((k, r), {})
         return {u: have[u] for u in sorted(have) if u in participants and u != self.uav}
 
+    def rebootstrap(self, k: int, inp) -> None:
+        """Start afresh before epoch k, as a restarted node does: a coarse alignment at epoch k from
+        the sensor-sim (``init?restart=1;k=K``) and the peers' latest states (queried); the
+        incarnation goes up so the monitor can tell the new estimates from the old."""
+        if self.k_done and k > self.k_done + 1:
+            self.log.warning("missed epochs %d-%d (frozen or cut off): re-bootstrapping at epoch %d", self.k_done + 1, k - 1, k)
+        init = self.query_one(keys.uav(self.run, self.uav, "init"), M.InitMsg, 10.0, f"restart=1;k={k}")
+        self.est = registry.make_node(self.a.algo, self.uav, self.meta, self.settings, M.msg_to_init(init))
+        peers = self.bootstrap_peers()
+        self.log.info("bootstrapping at epoch %d from peers %s", k, sorted(peers))
+        self.est.bootstrap(inp.t_prev, peers, inp)
+        self.inc += 1
+        self.need_bootstrap = False
+
     def run_epoch(self, k: int, first: bool) -> None:
         inp, part = self.inputs.pop(k)
         participants = set(part)
-        if first and self.a.rejoin:
+        if self.newest_peer_k >= k + 2:  # buffered while we were frozen: the swarm is long past it
+            self.log.warning("epoch %d is stale (peers at epoch %d): skipped", k, self.newest_peer_k)
+            self.need_bootstrap = True
+            self.skip_through(k)
+            return
+        if first and self.a.rejoin:  # restarted process: its estimator was built from init?restart=1
             peers = self.bootstrap_peers()
             self.log.info("bootstrapping at epoch %d from peers %s", k, sorted(peers))
             self.est.bootstrap(inp.t_prev, peers, inp)
+            self.inc += 1
+            self.need_bootstrap = False
+        elif self.need_bootstrap or k != self.k_done + 1:
+            self.rebootstrap(k, inp)
         bytes0 = self.bytes_out
         wait = 0.0
         c0 = time.process_time()
@@ -274,7 +364,14 @@ class Node:
                 self.publish(self.pub_state, frame)
                 t0 = time.monotonic()
                 c0 = time.process_time()
-                got = self.gather(k, state.r, participants)
+                try:
+                    got = self.gather(k, state.r, participants)
+                except StaleEpoch as e:
+                    self.log.warning("%s: dropping the epoch (never published as current) and re-bootstrapping", e)
+                    gen.close()
+                    self.need_bootstrap = True
+                    self.skip_through(k)
+                    return
                 c1 = time.process_time()
                 self.cpu_wait += c1 - c0
                 wait += time.monotonic() - t0
@@ -283,7 +380,7 @@ class Node:
                 self.cpu_est += time.process_time() - c1
         except StopIteration as stop:
             est = stop.value
-        em = M.estimate_to_msg(est, wait_ms=wait * 1e3, peers=sorted(used), bytes_out=0)
+        em = M.estimate_to_msg(est, wait_ms=wait * 1e3, peers=sorted(used), bytes_out=0, inc=self.inc)
         links = M.LinksMsg(uav=self.uav, k=k, links=em.links).encode()
         size = len(em.encode())
         em.bytes_out = self.bytes_out - bytes0 + size + len(links)
@@ -291,10 +388,18 @@ class Node:
         self.publish(self.pub_links, links)
         self.publish(self.pub_est, em)
         self.k_done = k
+        self.skip_through(k)
+
+    def skip_through(self, k: int) -> None:
+        """Forget states and inputs of epochs up to k (done, or dropped as stale)."""
         for key in [kr for kr in list(self.states) if kr[0] <= k]:  # list(): the state pump inserts concurrently
             del self.states[key]
         for kk in [x for x in self.inputs if x <= k]:
             del self.inputs[kk]
+        if self.need_bootstrap:  # stale: jump to the newest input, older ones are stale as well
+            newest = max(self.inputs, default=None)
+            for kk in [x for x in self.inputs if x != newest]:
+                del self.inputs[kk]
 
     def bootstrap_peers(self):
         peers = {}
@@ -330,7 +435,15 @@ class Node:
                 continue
             if self.done:
                 break
+            if self.sim_lost_at is not None and self.connected() and time.monotonic() - self.sim_lost_at > self.a.sim_lost_timeout:
+                self.log.error("the sensor-sim has been gone for %.0f s: stopping", self.a.sim_lost_timeout)
+                return 4
+            if self.offline_since is not None and not self.connected() and time.monotonic() - self.offline_since > self.a.outage_timeout:
+                self.log.error("no router for %.0f s: stopping", self.a.outage_timeout)
+                return 4
             self.pump(0.5)
+            if self.sim_lost_at is not None or self.offline_since is not None:
+                self.connected()
         return 0
 
 
@@ -349,10 +462,13 @@ def main(argv=None) -> int:
         except (KeyboardInterrupt, TimeoutError) as e:
             log.info("stopping: %s", type(e).__name__)
             rc = 0 if isinstance(e, KeyboardInterrupt) else 3
+        except OutageError as e:
+            log.error("stopping: %s", e)
+            rc = 4
         finally:
             node.inbox.stop.set()
-            log.info("UAV %d exiting after epoch %d; rejected messages: %d %s", args.uav, node.k_done,
-                     node.rejects.total, node.rejects.as_dict())
+            log.info("UAV %d exiting after epoch %d; rejected messages: %d %s; re-sent inputs ignored: %d; incarnation %d",
+                     args.uav, node.k_done, node.rejects.total, node.rejects.as_dict(), node.duplicates, node.inc)
             cpu, c0 = time.process_time(), getattr(node, "cpu_first", None)
             log.info("CPU %.2f s (start-up %s s, epochs %s s: estimator %.2f s, gathering peer states %.2f s)", cpu,
                      "-" if c0 is None else f"{c0:.2f}", "-" if c0 is None else f"{cpu - c0:.2f}", node.cpu_est,

@@ -62,7 +62,7 @@ def build_report(*, mode: str, scenario: str, seeds: list[int], n_uavs: int, dur
         "detection_single_threshold": detection_single,
         "thresholds": {"delta_l_m": delta_l_m, "delta_h_m": dict(delta_h_m)},
         "provenance": provenance,
-        "events": [{"t": float(e["t"]), "kind": str(e["kind"]), "uav": int(e["uav"])} for e in events],
+        "events": [{**e, "t": float(e["t"]), "kind": str(e["kind"]), "uav": int(e["uav"])} for e in events],
     }
     if extra:
         for k, v in extra.items():
@@ -229,11 +229,16 @@ def render_markdown(rep: dict) -> str:
     for i in ids:
         L.append(f"| {i} | " + " | ".join(_f(algos[n]["per_uav_pos_rmse_m"].get(str(i))) for n in names) + " |")
     L.append("")
+    if "complete" in rep:
+        L.append("## Completeness")
+        L.append("")
+        L.append(completeness_text(rep))
+        L.append("")
     L.append("## Events")
     L.append("")
     if rep["events"]:
         for e in rep["events"]:
-            L.append(f"- t = {e['t']:g} s: {e['kind']} UAV {e['uav']}")
+            L.append(f"- {event_line(e)}")
     else:
         L.append("none" + (" (process kills and restarts happen only in distributed runs)" if rep["mode"] == "in-process" else ""))
     pv = rep["provenance"]
@@ -263,3 +268,33 @@ def summary_table(rep: dict) -> str:
     for k, v in rep["improvement_pct"].items():
         rows.append(f"improvement {k}: {_f(v, 1)} %")
     return "\n".join(rows)
+
+
+def event_line(e: dict) -> str:
+    """One event in words: ``t = 15 s: dropout of UAV 2 (liveliness lost)``."""
+    who = f" of UAV {e['uav']}" if int(e.get("uav", 0) or 0) > 0 else ""
+    detail = f" ({e['detail']})" if e.get("detail") else ""
+    return f"t = {float(e['t']):g} s: {e['kind'].replace('_', ' ')}{who}{detail}"
+
+
+def events_text(events: list[dict]) -> str:
+    if not events:
+        return "events: none"
+    return "events:\n" + "\n".join(f"  {event_line(e)}" for e in events)
+
+
+def completeness_text(rep: dict) -> str:
+    """The completeness fields of a distributed run's report in one sentence."""
+    miss = {u: n for u, n in (rep.get("missing_by_uav") or {}).items() if n}
+    rej = sum((rep.get("rejected") or {}).values())
+    head = "**complete**" if rep.get("complete") else "**INCOMPLETE**"
+    txt = (f"{head}: {rep.get('estimates_received')} of {rep.get('estimates_expected')} expected estimates, "
+           f"{rep.get('epochs_recorded')} of {rep.get('epochs_expected')} epochs recorded")
+    if miss:
+        txt += "; missing " + ", ".join(f"UAV {u}: {n}" for u, n in sorted(miss.items(), key=lambda x: int(x[0])))
+    if rej:
+        txt += f"; {rej} hostile or malformed messages rejected"
+    sec = rep.get("security")
+    if sec:
+        txt += f"; security {sec.get('mode')}, ACL {'on' if sec.get('acl') else 'off'}"
+    return txt + "."

@@ -36,6 +36,30 @@ SCHEMA_VERSION = 5  # 2: binary input/state frames (below); 3: states carry az/e
 
 # no UWB range or range difference is this long: larger (finite) values are hostile or corrupt
 MAX_UWB_M = 1e5
+# plausible envelope of a position (m, any ENU axis, local frame) and of a variance (m^2): a state or
+# estimate outside it is rejected as corrupt or hostile. Receivers may pass a tighter envelope_m.
+ENVELOPE_M = 1e6
+MAX_VAR_M2 = 1e12
+
+
+def check_position_cov(pos, cov, envelope_m: float = ENVELOPE_M) -> None:
+    """WireError unless ``pos`` lies inside the envelope and ``cov`` (3x3) is symmetric positive
+    definite with variances below MAX_VAR_M2 (finite values are checked by the caller)."""
+    p = np.asarray(pos, np.float64)
+    c = np.asarray(cov, np.float64).reshape(3, 3)
+    if not (np.isfinite(p).all() and np.isfinite(c).all()):
+        raise WireError("invalid", "non-finite position or covariance")
+    if np.abs(p).max() > envelope_m:
+        raise WireError("envelope", f"position {np.abs(p).max():.3g} m from the origin, outside the {envelope_m:g} m envelope")
+    scale = max(float(np.abs(c).max()), 1e-300)
+    if np.abs(c - c.T).max() > 1e-9 * scale:
+        raise WireError("covariance", "position covariance not symmetric")
+    if np.diag(c).max() > MAX_VAR_M2:
+        raise WireError("covariance", f"position variance {np.diag(c).max():.3g} m^2 implausibly large")
+    try:
+        np.linalg.cholesky(c)
+    except np.linalg.LinAlgError:
+        raise WireError("covariance", "position covariance not positive definite") from None
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 Pos = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -221,6 +245,10 @@ class StateMsg(UavMsg):
     def _traj_epochs(self):
         if any(e < 0 or e > self.k for e in self.traj):
             raise ValueError(f"traj epochs must lie in [0, k = {self.k}]")
+        try:
+            check_position_cov(self.pos, self.pos_cov)
+        except WireError as e:
+            raise ValueError(str(e)) from None
         return self
 
     @field_validator("bearings")
@@ -261,6 +289,16 @@ class EstimateMsg(UavMsg):
     delta_l_m: Finite | None = None
     peers: list[UavId] = Field(default_factory=list)  # the peers whose states this epoch used
     bytes_out: int = Field(0, ge=0)  # bytes this node published for the epoch (state + estimate)
+    inc: int = Field(0, ge=0)  # the sender's incarnation (bumped at every re-bootstrap)
+
+    @model_validator(mode="after")
+    def _plausible(self):
+        try:
+            check_position_cov(self.pos, self.pos_cov)
+            check_position_cov(self.vel, np.eye(3))
+        except WireError as e:
+            raise ValueError(str(e)) from None
+        return self
 
 
 class LinksMsg(UavMsg):
@@ -286,6 +324,8 @@ class ClockMsg(Msg):
     done: bool = False
     hold: Literal["kill", "restart"] | None = None
     hold_uav: UavId | None = None
+    lost: Annotated[list[Annotated[int, Field(ge=1)]], Field(min_length=2, max_length=2)] | None = None  # [first, last]
+    #     epochs played into a bus outage in real-time mode (never delivered)
 
 
 # -- decoding --------------------------------------------------------------------------------
@@ -504,7 +544,8 @@ def encode_state(s: NodeState) -> bytes:
             + f.astype("<f8", copy=False).tobytes() + np.asarray(ids + bids + kids, "<i8").tobytes())
 
 
-def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = None) -> NodeState:
+def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = None,
+                 envelope_m: float = ENVELOPE_M) -> NodeState:
     """Binary state frame -> NodeState; WireError(malformed|version|invalid|wrong_uav|stale)."""
     _check_magic(payload, _STATE_MAGIC, _STATE_HDR.size)
     _, _, u, k, r, n, m, w = _STATE_HDR.unpack_from(payload)
@@ -517,6 +558,9 @@ def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = 
         raise WireError("invalid", f"ids uav {u} k {k} r {r}")
     if not (np.isfinite(f[:16]).all() and np.isfinite(f[18:]).all()):
         raise WireError("invalid", "non-finite value")
+    check_position_cov(f[1:4], f[4:13], envelope_m)
+    if np.abs(f[13:16]).max() > ENVELOPE_M or (w and np.abs(f[-3 * w:]).max() > envelope_m):
+        raise WireError("envelope", "velocity or window position outside the envelope")
     q = f[18:22]
     if q.any() and abs(float(np.linalg.norm(q)) - 1.0) > 1e-6:
         raise WireError("invalid", "attitude quaternion not of unit norm")

@@ -1,0 +1,278 @@
+"""What the monitor does with what it receives, without Zenoh: store, record, score, report.
+
+:class:`MonitorCore` is fed validated messages (estimates, clock) and events, by the live monitor
+(services/monitor/monitor.py) or by a replay of its journal (``swarmnav report RUN_DIR``), and
+writes the same outputs either way: the Rerun recording (services/recording.py), report.json /
+report.md (swarmnav.report, the in-process evaluation's metrics) and estimates.npz.
+
+Completeness (report.json top level): every UAV is expected to estimate every epoch except inside
+a *scheduled* kill window (``--kill ID@T`` .. ``--restart ID@T``); ``complete`` is true only when every
+expected estimate arrived, the run reached its end (the clock's ``done``) and no epoch was lost.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from swarmnav.dataset import Dataset
+from swarmnav.estimators import registry
+from swarmnav.evaluation import FAULT_RULE, RunResult, link_labels, truth_at_epochs
+from swarmnav.wire import messages as M
+
+from . import journal as J
+
+
+def excused_epochs(meta, uavs: list[int], kills: list[tuple[int, float]], restarts: list[tuple[int, float]]) -> np.ndarray:
+    """K x N bool: epochs a UAV is not expected to estimate (inside a scheduled kill window: from
+    the first epoch with t >= T_kill up to the epoch before the first with t >= T_restart)."""
+    K = meta.n_epochs()
+    t = np.array([meta.epoch_time(k) for k in range(1, K + 1)])
+    out = np.zeros((K, len(uavs)), bool)
+    for u, tk in kills:
+        if u not in uavs:
+            continue
+        later = [tr for uu, tr in restarts if uu == u and tr > tk]
+        tr = min(later) if later else np.inf
+        out[(t >= tk - 1e-9) & (t < tr - 1e-9), uavs.index(u)] = True
+    return out
+
+
+class MonitorCore:
+    def __init__(self, *, run: str, dataset: Path, seed: int, algo: str, out: Path, rec,
+                 kills=(), restarts=(), security: dict | None = None, config_sha256: str | None = None,
+                 journal: J.JournalWriter | None = None, log=None):
+        from services import recording as R
+
+        self.R, self.rec, self.log, self.journal = R, rec, log, journal
+        self.run, self.seed, self.algo, self.out = run, seed, algo, Path(out)
+        self.dataset_path = Path(dataset)
+        self.ds = Dataset.read(dataset)
+        self.meta = self.ds.meta
+        self.uavs = self.meta.uav_ids()
+        self.truth = truth_at_epochs(self.ds)
+        self.K = self.meta.n_epochs()
+        self.kills, self.restarts = [tuple(x) for x in kills], [tuple(x) for x in restarts]
+        self.excused = excused_epochs(self.meta, self.uavs, self.kills, self.restarts)
+        self.security = security or {"mode": "off", "acl": False}
+        self.config_sha256 = config_sha256
+        self.res = RunResult.empty(algo, seed, self.uavs, self.truth.t)
+        self.links: list[tuple] = []
+        n = len(self.uavs)
+        self.extra = {"wait_ms": np.full((self.K, n), np.nan), "bytes": np.full((self.K, n), np.nan)}
+        self.inc = np.zeros((self.K, n), np.int64)
+        # peers[k-1, j, l]: UAV j's estimate of epoch k used UAV l's states (who is in whose graph)
+        self.peers = np.zeros((self.K, n, n), bool)
+        self.events: list[dict] = []
+        self.rejected: dict[str, int] = {}
+        self.lost_epochs: set[int] = set()
+        self.t_now = self.meta.t_start
+        self.k_now = 0
+        self.done = False
+        self.last_inc: dict[int, int] = {}
+        # the recording: positions sent per epoch as they close
+        self.sent = np.zeros((self.K, n), bool)
+        self.logged_k = 0
+        self.radius = R.point_radius(self.truth.pos, list(self.meta.anchors().values()))
+        R.log_styles([algo, "truth"], rec=rec)
+        R.log_anchors(self.meta.anchors(), self.radius, rec=rec)
+
+    # -- inputs ---------------------------------------------------------------------------------
+    def event(self, kind: str, uav: int = 0, t: float | None = None, **extra) -> None:
+        ev = {"t": float(self.t_now if t is None else t), "kind": kind, "uav": int(uav), **extra}
+        self.events.append(ev)
+        if self.journal is not None:
+            self.journal.event(ev)
+        if self.log is not None:
+            self.log.info("event %s", ev)
+        self.R.set_epoch(max(self.k_now, 0), ev["t"], rec=self.rec)
+        self.R.log_event(kind, uav, ev["t"], rec=self.rec)
+
+    def reject(self, topic: str, reason: str) -> None:
+        key = f"{topic}:{reason}"
+        if key not in self.rejected:
+            self.event("rejected_messages", 0, detail=key)
+        self.rejected[key] = self.rejected.get(key, 0) + 1
+        if self.journal is not None:
+            self.journal.event({"t": float(self.t_now), "kind": "_rejected", "uav": 0, "counts": self.rejected})
+
+    def on_clock(self, c: M.ClockMsg, raw: bytes | None = None) -> None:
+        if self.journal is not None and raw is not None:
+            self.journal.write(J.CLOCK, raw)
+        if c.lost:
+            a, b = c.lost
+            self.lost_epochs.update(range(a, b + 1))
+            self.event("epochs_lost", 0, t=self.meta.epoch_time(a), detail=f"epochs {a}-{b} played into a bus outage")
+        if c.hold in ("kill", "restart") and c.hold_uav is not None:
+            self.event(f"scheduled_{c.hold}", c.hold_uav, t=c.t)
+        self.close_epochs(c.k - 2)  # one epoch of slack: estimates and the clock come on different channels
+        self.k_now, self.t_now = max(self.k_now, c.k), c.t
+        if c.done:
+            self.done = True
+
+    def on_estimate(self, m: M.EstimateMsg, raw: bytes | None = None) -> bool:
+        """Store one estimate; False (counted) when it is out of the run's range or a duplicate."""
+        if not 1 <= m.k <= self.K or m.uav not in self.uavs:
+            self.reject("estimate", "range")
+            return False
+        i, j = m.k - 1, self.uavs.index(m.uav)
+        r = self.res
+        if np.isfinite(r.pos[i, j, 0]):
+            return False  # a duplicate (recovered by query after an outage): the first one stands
+        if self.journal is not None and raw is not None:
+            self.journal.write(J.ESTIMATE, raw)
+        e = M.msg_to_estimate(m)
+        r.pos[i, j], r.vel[i, j], r.pos_cov[i, j] = e.pos, e.vel, e.pos_cov
+        if e.quat is not None:
+            r.quat[i, j] = e.quat
+        r.step_ms[i, j], r.rounds[i, j] = e.step_ms, e.rounds
+        if e.delta_h_m is not None:
+            r.delta_h_m[i, j] = e.delta_h_m
+        if e.delta_l_m is not None:
+            r.delta_l_m[i, j] = e.delta_l_m
+        for li in e.links:
+            self.links.append((m.k, m.uav, int(li.other), int(li.cls), float(li.residual_m), float(li.weight)))
+        self.extra["wait_ms"][i, j] = m.wait_ms
+        self.extra["bytes"][i, j] = m.bytes_out
+        self.inc[i, j] = m.inc
+        prev = self.last_inc.get(m.uav)
+        if prev is not None and m.inc > prev:
+            self.event("rebootstrap", m.uav, t=m.t, detail=f"incarnation {m.inc} from epoch {m.k}")
+        self.last_inc[m.uav] = max(prev or 0, m.inc)
+        for p in m.peers:
+            if p in self.uavs:
+                self.peers[i, j, self.uavs.index(p)] = True
+        return True
+
+    def missing(self, k: int, who: list[int]) -> list[int]:
+        """Of ``who``, the UAVs without an estimate of epoch k."""
+        got = np.isfinite(self.res.pos[k - 1, :, 0])
+        return [u for u in who if u in self.uavs and not got[self.uavs.index(u)]]
+
+    # -- recording -------------------------------------------------------------------------------
+    def close_epochs(self, upto: int) -> None:
+        """Send epochs up to ``upto`` to the recording (positions, truth, error series, links) and
+        flush it: what is on disk is at most the current epoch behind."""
+        upto = min(upto, self.K)
+        if upto <= self.logged_k:
+            return
+        R, a, rec, t, tr = self.R, self.algo, self.rec, self.truth.t, self.truth
+        lo, hi = self.logged_k, upto
+        ks = np.arange(lo + 1, hi + 1)
+        sl = slice(lo, hi)
+        pos = self.res.pos[sl]
+        have = np.isfinite(pos[..., 0])
+        # estimates of every epoch up to hi not yet in the recording (late ones of closed epochs too)
+        new = np.isfinite(self.res.pos[:hi, :, 0]) & ~self.sent[:hi]
+        kall = np.arange(1, hi + 1)
+        for j, u in enumerate(self.uavs):
+            m = new[:, j]
+            if m.any():
+                R.send_positions(a, u, t[:hi][m], kall[m], self.res.pos[:hi][m, j], rec=rec, radius=self.radius)
+            R.send_positions("truth", u, t[sl], ks, tr.pos[sl, j], rec=rec, radius=self.radius * 0.75)
+        ep = pos - tr.pos[sl]
+        ev = self.res.vel[sl] - tr.vel[sl]
+        with np.errstate(invalid="ignore"):
+            swarm_p = np.array([np.sqrt(np.mean(np.sum(ep[i][have[i]] ** 2, axis=1))) if have[i].any() else np.nan for i in range(len(ks))])
+            swarm_v = np.array([np.sqrt(np.mean(np.sum(ev[i][have[i]] ** 2, axis=1))) if have[i].any() else np.nan for i in range(len(ks))])
+        ok = np.isfinite(swarm_p)
+        if ok.any():
+            R.send_series(R.error_path(a, "pos_3d", "swarm"), t[sl][ok], ks[ok], swarm_p[ok], rec=rec)
+            R.send_series(R.error_path(a, "vel_3d", "swarm"), t[sl][ok], ks[ok], swarm_v[ok], rec=rec)
+        if 1 in self.uavs:
+            j1 = self.uavs.index(1)
+            m = have[:, j1]
+            if m.any():
+                R.send_series(R.error_path(a, "pos_3d", "uav1"), t[sl][m], ks[m], np.linalg.norm(ep[m, j1], axis=1), rec=rec)
+        by_k: dict[int, list] = {}
+        for k, u, o, c, *_ in self.links:
+            if lo < k <= hi:
+                by_k.setdefault(k, []).append((u, o, c))
+        segs, cls, counts = [], [], []
+        for i, k in enumerate(ks):
+            n = 0
+            for u, o, c in by_k.get(int(k), []):
+                if u in self.uavs and o in self.uavs and have[i, self.uavs.index(u)] and have[i, self.uavs.index(o)]:
+                    segs.append([pos[i, self.uavs.index(u)], pos[i, self.uavs.index(o)]])
+                    cls.append(c)
+                    n += 1
+            counts.append(n)
+        if segs:
+            R.send_links(a, t[sl], ks, np.array(segs, float).reshape(-1, 2, 3), np.array(cls, int), np.array(counts), rec=rec,
+                         radius=0.15 * self.radius)
+        else:
+            for k in ks:
+                R.set_epoch(int(k), float(t[k - 1]), rec=rec)
+                R.log_links(a, {}, [], rec=rec, radius=0.15 * self.radius)
+        self.sent[:hi] |= new
+        self.logged_k = hi
+        R.flush_recording(rec)
+
+    # -- report ------------------------------------------------------------------------------------
+    def completeness(self) -> dict:
+        got = np.isfinite(self.res.pos[..., 0])
+        exp = ~self.excused
+        miss = exp & ~got
+        missing_by_uav = {str(u): int(miss[:, j].sum()) for j, u in enumerate(self.uavs)}
+        recorded = int(got.any(axis=1).sum())
+        complete = bool(self.done and not miss.any() and not self.lost_epochs)
+        return {"complete": complete, "epochs_expected": int(self.K), "epochs_recorded": recorded,
+                "estimates_expected": int(exp.sum()), "estimates_received": int((got & exp).sum()),
+                "missing_by_uav": missing_by_uav, "epochs_lost": sorted(self.lost_epochs)}
+
+    def report(self) -> dict:
+        from swarmnav import metrics
+        from swarmnav.report import build_report, render_markdown, validate_report
+
+        from services.provenance import dataset_sha256, provenance
+
+        a, r, tr = self.algo, self.res, self.truth
+        block = metrics.algorithm_metrics(tr.uavs, tr.t, [r.pos - tr.pos], [r.vel - tr.vel], [r.pos_cov], [r.step_ms],
+                                          self.meta.gnss_outages)
+        block["rounds_mean"] = float(np.nanmean(r.rounds)) if np.isfinite(r.rounds).any() else None
+        settings = registry.settings_for_dataset(self.meta)
+        det = single = None
+        dl = settings.get("delta_l_m")
+        dh = {"p50": None, "p95": None}
+        from swarmnav.evaluation import LINK_DTYPE
+
+        r.links = np.array(self.links, dtype=LINK_DTYPE) if self.links else np.zeros(0, LINK_DTYPE)
+        if a == "atvfg":
+            det, single = metrics.detection_report(r.links, link_labels(self.ds), self.meta.fault_threshold_m)
+            dh = metrics.percentiles(r.delta_h_m.ravel(), (50, 95))
+            if dl is None:
+                v = r.delta_l_m.ravel()
+                v = v[np.isfinite(v)]
+                dl = float(np.median(v)) if len(v) else None
+        b, w = self.extra["bytes"], self.extra["wait_ms"]
+        comp = self.completeness()
+        dist = {"run_id": self.run, "epochs_recorded": comp["epochs_recorded"],
+                "missing_estimates": int((~np.isfinite(r.pos[..., 0])).sum()),
+                "bytes_out_per_uav_epoch": float(np.nanmean(b)) if np.isfinite(b).any() else None,
+                "wait_ms": metrics.percentiles(w, (50, 99)), "monitor_rejected": dict(self.rejected)}
+        extra = {**comp, "rejected": dict(self.rejected), "security": dict(self.security), "distributed": dist,
+                 "fault_threshold_m": self.meta.fault_threshold_m, "fault_threshold_rule": FAULT_RULE}
+        rep = build_report(mode="distributed", scenario=self.meta.name, seeds=[self.seed], n_uavs=len(self.uavs),
+                           duration_s=self.meta.duration_s, algorithms={a: block}, detection=det, detection_single=single,
+                           delta_l_m=dl, delta_h_m=dh, provenance=provenance(self.config_sha256 or dataset_sha256(self.meta)),
+                           events=sorted(self.events, key=lambda e: e["t"]), extra=extra)
+        probs = validate_report(rep)
+        if probs and self.log is not None:
+            self.log.error("report.json does not meet the contract: %s", probs)
+        (self.out / "report.json").write_text(json.dumps(rep, indent=1) + "\n")
+        np.savez_compressed(self.out / "estimates.npz", t=r.t, uavs=r.uavs, pos=r.pos, vel=r.vel, pos_cov=r.pos_cov,
+                            rounds=r.rounds, step_ms=r.step_ms, wait_ms=w, bytes_out=b, peers=self.peers, inc=self.inc)
+        (self.out / "report.md").write_text(render_markdown(rep))
+        return rep
+
+    def finish(self) -> dict:
+        """Close every epoch in the recording, write the report, close the recording."""
+        try:
+            self.close_epochs(self.K)
+            return self.report()
+        finally:
+            self.R.close_recording(self.rec)
+            if self.journal is not None:
+                self.journal.close()
