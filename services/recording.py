@@ -67,9 +67,81 @@ def open_recording(path, recording_id: str | None = None, blueprint: rrb.Bluepri
     return rec
 
 
-def flush_recording(rec: rr.RecordingStream) -> None:
-    """Push everything logged so far to the file (the live monitor calls it every epoch)."""
-    rec.flush()
+class FileRecording:
+    """A recording written to one .rrd by a file sink: valid once closed (``swarmnav evaluate``,
+    ``swarmnav report``)."""
+
+    def __init__(self, path, recording_id: str | None = None, blueprint: rrb.Blueprint | None = None):
+        self.path = path
+        self.rec = open_recording(path, recording_id, blueprint)
+
+    def commit(self) -> None:
+        self.rec.flush()
+
+    def close(self) -> None:
+        close_recording(self.rec)
+
+
+class SegmentedRecording:
+    """A live recording that is valid on disk whatever happens to the process (the monitor's).
+
+    A file sink writes the .rrd footer only when it closes, so a SIGKILLed writer leaves a file
+    that ``rerun rrd verify`` rejects. Here every :meth:`commit` (one per epoch) encodes what was
+    logged since the last one as a complete stream (header, data, footer) and writes it atomically
+    (temporary file + rename) to ``<dir>/seg_<n>.rrd``: every file on disk always verifies, and a
+    crash loses at most the epoch in hand. :meth:`close` merges the segments into the final .rrd
+    with ``rerun rrd merge`` (blueprint kept) and removes them. (Several complete streams in ONE
+    file do not verify in rerun 0.41: "More than one RRD manifest".)
+    """
+
+    def __init__(self, seg_dir, final_path, recording_id: str | None = None, blueprint: rrb.Blueprint | None = None):
+        from pathlib import Path
+
+        self.dir, self.final = Path(seg_dir), Path(final_path)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.rec = rr.RecordingStream(APP_ID, recording_id=recording_id)
+        self.stream = self.rec.binary_stream()
+        if blueprint is not None:
+            self.rec.send_blueprint(blueprint)
+        self.n = 0
+
+    def commit(self) -> None:
+        import os
+
+        b = self.stream.read(flush=True)
+        if not b:
+            return
+        seg = self.dir / f"seg_{self.n:06d}.rrd"
+        tmp = seg.with_suffix(".rrd.tmp")
+        with open(tmp, "wb") as f:
+            f.write(b)
+        os.replace(tmp, seg)
+        self.n += 1
+
+    def close(self) -> None:
+        self.commit()
+        merge_segments(self.dir, self.final)
+
+
+def merge_segments(seg_dir, final_path) -> int:
+    """``rerun rrd merge`` every ``seg_*.rrd`` of ``seg_dir`` into ``final_path`` (atomically), then
+    remove the segments. Returns the number merged."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    segs = sorted(Path(seg_dir).glob("seg_*.rrd"))
+    if segs:
+        cli = Path(sys.executable).with_name("rerun")
+        tmp = str(final_path) + ".tmp"
+        r = subprocess.run([str(cli), "rrd", "merge", *map(str, segs), "-o", tmp], capture_output=True, text=True)
+        if r.returncode != 0:
+            raise RuntimeError(f"rerun rrd merge failed: {r.stderr.strip()[-500:]}")
+        os.replace(tmp, final_path)
+    shutil.rmtree(seg_dir, ignore_errors=True)
+    return len(segs)
 
 
 def close_recording(rec: rr.RecordingStream) -> None:

@@ -47,8 +47,8 @@ def rebuild(run_dir: Path) -> dict:
     if not ds.is_dir():
         raise SwarmnavError(f"the run's dataset {h['dataset']} is gone; put it back (or at {run_dir / 'dataset'}) and retry")
     tmp = run_dir / "swarm.rrd.rebuild"
-    rec = R.open_recording(tmp, recording_id=h["run"], blueprint=R.default_blueprint([h["algo"]]))
-    core = MonitorCore(run=h["run"], dataset=ds, seed=h["seed"], algo=h["algo"], out=run_dir, rec=rec,
+    sink = R.FileRecording(tmp, recording_id=h["run"], blueprint=R.default_blueprint([h["algo"]]))
+    core = MonitorCore(run=h["run"], dataset=ds, seed=h["seed"], algo=h["algo"], out=run_dir, sink=sink,
                        kills=h.get("kills", []), restarts=h.get("restarts", []), security=h.get("security"),
                        config_sha256=h.get("config_sha256"))
     rejected: dict[str, int] = {}
@@ -74,6 +74,9 @@ def rebuild(run_dir: Path) -> dict:
         core.event("monitor_lost", 0, detail=f"the journal ends at epoch {core.k_now}: the monitor stopped before the run ended")
     rep = core.finish()
     os.replace(tmp, run_dir / "swarm.rrd")
+    import shutil
+
+    shutil.rmtree(run_dir / "recording", ignore_errors=True)  # the live segments: all in swarm.rrd now
     return rep
 
 

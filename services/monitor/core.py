@@ -41,12 +41,12 @@ def excused_epochs(meta, uavs: list[int], kills: list[tuple[int, float]], restar
 
 
 class MonitorCore:
-    def __init__(self, *, run: str, dataset: Path, seed: int, algo: str, out: Path, rec,
+    def __init__(self, *, run: str, dataset: Path, seed: int, algo: str, out: Path, sink,
                  kills=(), restarts=(), security: dict | None = None, config_sha256: str | None = None,
                  journal: J.JournalWriter | None = None, log=None):
         from services import recording as R
 
-        self.R, self.rec, self.log, self.journal = R, rec, log, journal
+        self.R, self.sink, self.rec, self.log, self.journal = R, sink, sink.rec, log, journal
         self.run, self.seed, self.algo, self.out = run, seed, algo, Path(out)
         self.dataset_path = Path(dataset)
         self.ds = Dataset.read(dataset)
@@ -76,8 +76,8 @@ class MonitorCore:
         self.sent = np.zeros((self.K, n), bool)
         self.logged_k = 0
         self.radius = R.point_radius(self.truth.pos, list(self.meta.anchors().values()))
-        R.log_styles([algo, "truth"], rec=rec)
-        R.log_anchors(self.meta.anchors(), self.radius, rec=rec)
+        R.log_styles([algo, "truth"], rec=self.rec)
+        R.log_anchors(self.meta.anchors(), self.radius, rec=self.rec)
 
     # -- inputs ---------------------------------------------------------------------------------
     def event(self, kind: str, uav: int = 0, t: float | None = None, **extra) -> None:
@@ -208,7 +208,7 @@ class MonitorCore:
                 R.log_links(a, {}, [], rec=rec, radius=0.15 * self.radius)
         self.sent[:hi] |= new
         self.logged_k = hi
-        R.flush_recording(rec)
+        self.sink.commit()
 
     # -- report ------------------------------------------------------------------------------------
     def completeness(self) -> dict:
@@ -273,6 +273,6 @@ class MonitorCore:
             self.close_epochs(self.K)
             return self.report()
         finally:
-            self.R.close_recording(self.rec)
+            self.sink.close()
             if self.journal is not None:
                 self.journal.close()

@@ -64,8 +64,9 @@ class Monitor:
                   "kills": args.kill, "restarts": args.restart, "config_sha256": args.config_sha256,
                   "security": {"mode": args.security_mode, "acl": args.acl == "on"}}
         jr = J.JournalWriter(J.journal_path(out), header)
-        rec = R.open_recording(out / "swarm.rrd", recording_id=args.run, blueprint=R.default_blueprint([args.algo]))
-        self.core = MonitorCore(run=args.run, dataset=Path(args.dataset), seed=args.seed, algo=args.algo, out=out, rec=rec,
+        sink = R.SegmentedRecording(out / "recording", out / "swarm.rrd", recording_id=args.run,
+                                    blueprint=R.default_blueprint([args.algo]))
+        self.core = MonitorCore(run=args.run, dataset=Path(args.dataset), seed=args.seed, algo=args.algo, out=out, sink=sink,
                                 kills=args.kill, restarts=args.restart, security=header["security"],
                                 config_sha256=args.config_sha256, journal=jr, log=log)
         self.uavs = self.core.uavs
@@ -78,6 +79,8 @@ class Monitor:
         self.sim_lost_at: float | None = None
         self.in_outage = False
         self.last_participants: list[int] = []
+        self.prev_participants: list[int] = []
+        self.clock_k = 0
 
     def setup(self):
         ib = self.inbox
@@ -186,11 +189,15 @@ class Monitor:
         try:
             if tag == "clock":
                 c = M.decode(M.ClockMsg, payload)
-                prev = self.last_participants
-                self.last_participants = c.participants
+                new_epoch = c.k > self.clock_k and not c.hold and not c.done
+                if new_epoch:
+                    self.clock_k = c.k
                 self.core.on_clock(c, payload)
-                if c.k >= 2 and self.core.missing(c.k - 1, prev):
-                    self.recover(c.k - 1)
+                if new_epoch:  # participants of epoch k-2: their estimates are surely due by now
+                    prev = self.prev_participants
+                    self.prev_participants, self.last_participants = self.last_participants, c.participants
+                    if c.k >= 3 and self.core.missing(c.k - 2, prev):
+                        self.recover(c.k - 2)
             elif tag == "truth":
                 M.decode(M.TruthMsg, payload, uav=kk.uav)  # validated; truth for scoring comes from the dataset
             elif tag == "est":

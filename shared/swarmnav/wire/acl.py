@@ -63,7 +63,8 @@ def grants(run: str, principal: str) -> list[dict]:
             ("put", WRITE, "ingress", own),
             ("token", TOKEN, "ingress", [keys.alive(run, "uav", u)]),
             ("queryable", QUERYABLE, "ingress", [keys.uav(run, u, "state")]),
-            ("queried", QUERY, "egress", [keys.uav(run, u, "state")]),
+            # queries reach its queryable as sent: exact (uav/i/state?k=..) or the peers' wildcard (bootstrap)
+            ("queried", QUERY, "egress", [keys.uav(run, u, "state"), peers_state]),
             ("reply", REPLY, "ingress", [keys.uav(run, u, "state")]),
             ("subscribe", SUBSCRIBE, "ingress", [keys.uav(run, u, "input"), peers_state, keys.clock(run)]),
             ("receive", WRITE, "egress", [keys.uav(run, u, "input"), peers_state, keys.clock(run)]),
