@@ -104,11 +104,11 @@ def _write_private(path: Path, text: str) -> None:
 
 def client_config_dict(endpoint: str, ca_pem: bytes, cert_pem: bytes, key_pem: bytes) -> dict:
     """A complete client config of one principal (see deploy/zconf.py for the shared base)."""
-    from deploy.zconf import LEASE_MS
+    from deploy.zconf import LEASE_MS, RETRY
 
     return {
         "mode": "client",
-        "connect": {"endpoints": [endpoint], "timeout_ms": -1},
+        "connect": {"endpoints": [endpoint], "timeout_ms": -1, "retry": RETRY},
         "listen": {"endpoints": []},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": True}},
         "transport": {"link": {"tx": {"lease": LEASE_MS}, "tls": {

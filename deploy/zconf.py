@@ -13,6 +13,7 @@ import socket
 
 LEASE_MS = 3000
 DROP_WAIT_US = 20_000
+RETRY = {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -26,6 +27,8 @@ def _base(conf) -> None:
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("scouting/gossip/enabled", "true")
     conf.insert_json5("transport/link/tx/lease", str(LEASE_MS))
+    # reconnect within ~0.2 s of a router coming back (default schedule 1/2/4 s: up to 4 s)
+    conf.insert_json5("connect/retry", json.dumps(RETRY))
     # DROP publishers (peer states) wait this long for room in a congested link queue before
     # dropping (default 1 ms): 20 processes on 2 cores starve the router for longer than that
     conf.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop", str(DROP_WAIT_US))

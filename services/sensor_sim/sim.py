@@ -95,6 +95,7 @@ class SensorSim:
         self.inbox = Inbox()
         self.rejects = M.Rejects(log)
         self.alive_uav: set[int] = set()
+        self.gone_since: dict[int, float] = {}  # uav -> monotonic time its token went away
         self.monitor_alive = False
         self.estimates: dict[int, set[int]] = {}
         self.k = 0
@@ -154,6 +155,8 @@ class SensorSim:
                     self.rejects.add("alive", M.WireError("unknown_uav", f"liveliness token of UAV {kk.uav}, not in the dataset {self.uavs}"))
                     return
                 (self.alive_uav.add if put else self.alive_uav.discard)(kk.uav)
+                if not put:
+                    self.gone_since[kk.uav] = time.monotonic()
             elif kk.topic == "monitor":
                 self.monitor_alive = put
             return
@@ -226,6 +229,24 @@ class SensorSim:
         self.log.warning("epoch %d: bus back after %.1f s; live UAVs %s", k, time.monotonic() - t0, sorted(self.alive_uav))
         return True
 
+    def gone(self, u: int) -> bool:
+        """UAV u's token has been away for DROP_CONFIRM_S while the bus stayed up: a death or a
+        freeze, not an outage (which deletes every token at once, the monitor's too)."""
+        if u in self.alive_uav:
+            return False
+        while (left := DROP_CONFIRM_S - (time.monotonic() - self.gone_since.get(u, 0.0))) > 0:
+            self.pump(left)  # let the rest of a burst of deletions (an outage) arrive
+        return u not in self.alive_uav and self.connected()
+
+    def settle_membership(self, k: int) -> None:
+        """Before opening epoch k: if members of the last epoch vanished, tell a death from an
+        outage (wait for the bus to come back in the latter)."""
+        if set(self.part_prev) - self.alive_uav:
+            for u in sorted(set(self.part_prev) - self.alive_uav):
+                if not self.gone(u):
+                    break
+            self.ride_out_outage(k)
+
     def recover_estimates(self, k: int, missing: list[int]) -> None:
         """Ask the nodes' state queryables for epoch-k estimates that never arrived (published while
         the bus was down); replies carry the node's recent estimates."""
@@ -260,13 +281,13 @@ class SensorSim:
         dl = Deadline(self.a.epoch_timeout)
         last_try = time.monotonic()
         while True:
-            missing = [u for u in part if u not in self.estimates.get(k, ()) and u in self.alive_uav]
+            missing = [u for u in part if u not in self.estimates.get(k, ()) and not self.gone(u)]
             if not missing:
                 return
             if self.ride_out_outage(k) or time.monotonic() - last_try > self.a.requery_s:
                 last_try = time.monotonic()
                 self.recover_estimates(k, missing)
-                missing = [u for u in part if u not in self.estimates.get(k, ()) and u in self.alive_uav]
+                missing = [u for u in part if u not in self.estimates.get(k, ()) and not self.gone(u)]
                 if missing:
                     self.log.info("epoch %d: re-sending the epoch to %s (no estimate yet)", k, missing)
                     self.publish_epoch(k, part, only=missing)
@@ -290,7 +311,7 @@ class SensorSim:
         while k <= self.K:
             self.k = k
             t = self.meta.epoch_time(k)
-            self.ride_out_outage(k)
+            self.settle_membership(k)
             while kills and kills[0][0] <= t + 1e-9:
                 _, u = kills.pop(0)
                 self.clock(k, hold="kill", hold_uav=u, participants=sorted(self.alive_uav))
@@ -316,6 +337,7 @@ class SensorSim:
                         continue
             else:
                 self.pump(0)
+                self.settle_membership(k)
             part = sorted(self.alive_uav)
             self.part_prev = part
             if a.garbage_at == k:
@@ -344,6 +366,9 @@ class SensorSim:
             if (not self.alive_uav and not self.monitor_alive) or dl.passed():
                 break
         time.sleep(0.2)  # let the last clock message leave before the session closes
+
+
+DROP_CONFIRM_S = 0.3
 
 
 class OutageError(RuntimeError):
