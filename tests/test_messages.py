@@ -288,3 +288,38 @@ def test_state_frame_rejects():
     with pytest.raises(M.WireError) as e:
         M.decode_state(b, uav=3, min_k=6)
     assert e.value.reason == "stale"
+
+
+# -- plausibility: hostile or corrupt values in states and estimates (issue "No silent corruption") --
+
+
+@pytest.mark.parametrize("pos, cov, reason", [
+    ([1e300, 0.0, 0.0], np.eye(3), "envelope"),
+    ([0.0, 0.0, 2e6], np.eye(3), "envelope"),
+    ([1.0, 2.0, 3.0], np.zeros((3, 3)), "covariance"),
+    ([1.0, 2.0, 3.0], -np.eye(3), "covariance"),
+    ([1.0, 2.0, 3.0], np.diag([1.0, 1.0, -1e-6]), "covariance"),
+    ([1.0, 2.0, 3.0], np.array([[1.0, 0.5, 0], [0.0, 1, 0], [0, 0, 1]]), "covariance"),  # not symmetric
+    ([1.0, 2.0, 3.0], np.eye(3) * 1e13, "covariance"),  # variance implausibly large
+])
+def test_state_and_estimate_values_checked(pos, cov, reason):
+    rng = np.random.default_rng(3)
+    s = _state(rng)
+    s.pos, s.pos_cov = np.array(pos, float), np.array(cov, float)
+    with pytest.raises(M.WireError) as e:
+        M.decode_state(M.encode_state(s), uav=3)
+    assert e.value.reason == reason
+    good = M.estimate_to_msg(NodeEstimate(2, 9, 9.0, np.zeros(3), np.zeros(3), np.eye(3), None, [], 3, 1.5, None, None))
+    bad = {**good.model_dump(mode="json"), "pos": list(map(float, pos)), "pos_cov": list(map(float, np.ravel(cov)))}
+    with pytest.raises(M.WireError) as e2:
+        M.decode(M.EstimateMsg, json.dumps(bad).encode(), uav=2)
+    assert e2.value.reason == "invalid" and reason in str(e2.value)
+
+
+def test_state_envelope_set_by_the_receiver():
+    s = _state(np.random.default_rng(4))
+    s.pos = np.array([5e4, 0.0, 0.0])
+    s.traj = {}
+    assert M.decode_state(M.encode_state(s), uav=3).pos[0] == 5e4  # default envelope 1e6 m
+    with pytest.raises(M.WireError, match="envelope"):
+        M.decode_state(M.encode_state(s), uav=3, envelope_m=1e4)
