@@ -43,23 +43,25 @@ MAX_VAR_M2 = 1e12
 
 
 def check_position_cov(pos, cov, envelope_m: float = ENVELOPE_M) -> None:
-    """WireError unless ``pos`` lies inside the envelope and ``cov`` (3x3) is symmetric positive
-    definite with variances below MAX_VAR_M2 (finite values are checked by the caller)."""
-    p = np.asarray(pos, np.float64)
-    c = np.asarray(cov, np.float64).reshape(3, 3)
-    if not (np.isfinite(p).all() and np.isfinite(c).all()):
+    """WireError unless ``pos`` (3) lies inside the envelope and ``cov`` (3x3 or 9, row-major) is
+    symmetric positive definite (Sylvester: leading minors > 0) with variances below MAX_VAR_M2.
+    Plain float arithmetic: it runs on every received peer state."""
+    p = [float(x) for x in np.asarray(pos, np.float64).ravel().tolist()]
+    a, b, c, d, e, f, g, h, i = (float(x) for x in np.asarray(cov, np.float64).ravel().tolist())
+    if not all(math.isfinite(x) for x in (*p, a, b, c, d, e, f, g, h, i)):
         raise WireError("invalid", "non-finite position or covariance")
-    if np.abs(p).max() > envelope_m:
-        raise WireError("envelope", f"position {np.abs(p).max():.3g} m from the origin, outside the {envelope_m:g} m envelope")
-    scale = max(float(np.abs(c).max()), 1e-300)
-    if np.abs(c - c.T).max() > 1e-9 * scale:
+    if max(abs(x) for x in p) > envelope_m:
+        raise WireError("envelope", f"position {max(abs(x) for x in p):.3g} m from the origin, outside the {envelope_m:g} m envelope")
+    tol = 1e-9 * max(abs(a), abs(e), abs(i), 1e-300)
+    if abs(b - d) > tol or abs(c - g) > tol or abs(f - h) > tol:
         raise WireError("covariance", "position covariance not symmetric")
-    if np.diag(c).max() > MAX_VAR_M2:
-        raise WireError("covariance", f"position variance {np.diag(c).max():.3g} m^2 implausibly large")
-    try:
-        np.linalg.cholesky(c)
-    except np.linalg.LinAlgError:
-        raise WireError("covariance", "position covariance not positive definite") from None
+    if max(a, e, i) > MAX_VAR_M2:
+        raise WireError("covariance", f"position variance {max(a, e, i):.3g} m^2 implausibly large")
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    if not (a > 0 and a * e - b * d > 0 and det > 0):
+        raise WireError("covariance", "position covariance not positive definite")
+
+
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 Pos = Annotated[float, Field(gt=0, allow_inf_nan=False)]
