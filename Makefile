@@ -11,7 +11,7 @@ export OMP_NUM_THREADS=1
 export OPENBLAS_NUM_THREADS=1
 export MKL_NUM_THREADS=1
 
-.PHONY: setup run dropout miluv view test test-fast evaluate clean help
+.PHONY: setup run dropout miluv chaos view test test-fast evaluate clean help
 help:            ## list targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*##/ —/'
 
@@ -33,6 +33,9 @@ miluv: setup     ## real MILUV flight (MILUV=dir): import, evaluate every algori
 	$(BIN)/swarmnav import-miluv $(MILUV) --out runs/miluv-dataset
 	$(BIN)/swarmnav evaluate --dataset runs/miluv-dataset --algos atvfg,fg,ins,central,fkf --seeds 0 --out runs/miluv-evaluate
 	$(BIN)/swarmnav launch --dataset runs/miluv-dataset --algo $(ALGO) --seed 0
+
+chaos: setup     ## fault campaign on smoke (kills, freeze, monitor/sensor-sim/launcher/router faults) -> runs/chaos-<timestamp>/chaos.md
+	$(BIN)/python -m deploy.chaos
 
 evaluate: setup  ## in-process evaluation of all algorithms on CONFIG
 	$(BIN)/swarmnav evaluate --config $(CONFIG) --algos atvfg,fg,fkf,ins,central --seeds $(SEED)
