@@ -19,6 +19,21 @@ import time
 from pathlib import Path
 
 HELP = "run the swarm as a real multi-process Zenoh deployment (router, sensor-sim, UAV nodes, monitor)"
+DESCRIPTION = HELP + """.
+
+Secure by default: the embedded router speaks mutual TLS only and enforces an ACL; every process has
+its own identity (RUN_DIR/security/<principal>.json5). The run directory receives report.json,
+report.md, swarm.rrd, estimates.npz, logs/ and the monitor's journal/. The exit status is 0 only
+for a complete run (every expected estimate received).
+
+examples:
+  swarmnav launch --config configs/smoke.toml                       # 5 UAVs, 60 s, lockstep
+  swarmnav launch --config configs/paper.toml --algo fg --seed 2    # the paper swarm with plain fg
+  swarmnav launch --config configs/smoke.toml --kill 2@15 --restart 2@25 --out runs/dropout
+  swarmnav launch --config configs/smoke.toml --rate 1              # real time instead of lockstep
+  swarmnav launch --dataset runs/miluv-dataset --seed 0             # replay a recorded dataset
+  swarmnav report runs/latest                                       # rebuild the outputs after a crash
+"""
 
 
 def default_run_dir(name: str) -> Path:
@@ -41,7 +56,7 @@ def add_arguments(p):
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--config", help="scenario TOML (simulated once for the run)")
     src.add_argument("--dataset", help="dataset directory to replay")
-    p.add_argument("--algo", default="atvfg", help="estimator hosted by every node (default atvfg)")
+    p.add_argument("--algo", default="atvfg", help="estimator hosted by every node: atvfg (default), fg, fkf or ins")
     p.add_argument("--seed", type=int, default=None, help="run seed (default: the config's)")
     p.add_argument("--kill", type=_fault, action="append", default=[], metavar="ID@T", help="SIGKILL UAV ID's process at sim time T")
     p.add_argument("--restart", type=_fault, action="append", default=[], metavar="ID@T", help="restart UAV ID's process at sim time T")
@@ -84,6 +99,35 @@ def prepare_run_dir(path: Path, force: bool) -> None:
         shutil.rmtree(x) if x.is_dir() and not x.is_symlink() else x.unlink()
 
 
+def check_algo(algo: str) -> None:
+    """A launch hosts one per-UAV estimator in every node process: refuse anything else up front."""
+    from swarmnav.errors import SwarmnavError
+    from swarmnav.estimators import registry
+
+    nodes = [a for a in registry.known() if registry.kind(a) == "node"]
+    if algo not in nodes:
+        why = (" is the whole-swarm oracle: it runs in-process only (swarmnav evaluate --algos central)"
+               if algo in registry.known() else " is not an estimator")
+        raise SwarmnavError(f"--algo {algo!r}{why}; launch runs one of: {', '.join(nodes)}")
+
+
+def check_schedule(kills, restarts, uavs: list[int], t_start: float, duration_s: float) -> None:
+    """--kill/--restart: existing UAVs, times inside the scenario, a restart only after a kill."""
+    from swarmnav.errors import SwarmnavError
+
+    t_end = t_start + duration_s
+    for flag, items in (("--kill", kills), ("--restart", restarts)):
+        for u, t in items:
+            if u not in uavs:
+                raise SwarmnavError(f"{flag} {u}@{t:g}: UAV {u} does not exist (UAVs {uavs[0]}..{uavs[-1]})")
+            if not t_start < t < t_end:
+                raise SwarmnavError(f"{flag} {u}@{t:g}: T is simulation time and must lie inside the scenario "
+                                    f"({t_start:g} < T < {t_end:g} s)")
+    for u, t in restarts:
+        if not any(ku == u and kt < t for ku, kt in kills):
+            raise SwarmnavError(f"--restart {u}@{t:g}: UAV {u} is not killed before {t:g} s; add --kill {u}@T with T < {t:g}")
+
+
 def run(args) -> int:
     from deploy.launcher import LaunchSpec, launch
     from swarmnav.dataset import Dataset
@@ -91,6 +135,7 @@ def run(args) -> int:
 
     if args.rate is not None and not args.rate > 0:
         raise SwarmnavError(f"--rate {args.rate:g}: must be a real-time factor > 0 (e.g. --rate 1), or leave it out for lockstep")
+    check_algo(args.algo)
     kills, restarts = list(args.kill), list(args.restart)
     sha = None
     if args.config:
@@ -105,10 +150,12 @@ def run(args) -> int:
             kills.append((pk.uav, pk.at_s))
             if pk.restart_s is not None:
                 restarts.append((pk.uav, pk.restart_s))
+        check_schedule(kills, restarts, sc.uav_ids(), 0.0, sc.scenario.duration_s)
     else:
         ds = Dataset.read(args.dataset)
         name = ds.meta.name
         seed = args.seed if args.seed is not None else (ds.meta.seed or 0)
+        check_schedule(kills, restarts, ds.meta.uav_ids(), ds.meta.t_start, ds.meta.duration_s)
     run_dir = Path(args.out) if args.out else default_run_dir(name)
     prepare_run_dir(run_dir, args.force)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -122,9 +169,6 @@ def run(args) -> int:
     else:
         dataset = Path(args.dataset).resolve()
     uavs = ds.meta.uav_ids()
-    for u, _ in kills + restarts:
-        if u not in uavs:
-            raise SwarmnavError(f"--kill/--restart: UAV {u} does not exist (UAVs {uavs})")
     if not args.out:
         latest = Path("runs") / "latest"
         if latest.is_symlink() or latest.exists():

@@ -33,7 +33,8 @@ from swarmnav.wire import messages as M
 
 HISTORY = 20
 EST_HISTORY = 64  # estimates kept for the state queryable (recovered by the sensor-sim/monitor after an outage)
-RECONNECT_GRACE_S = 3.0  # after the bus comes back, peers' tokens reappear within ~1 s: wait for them
+RECONNECT_GRACE_S = 3.0
+DROP_CONFIRM_S = 0.3  # a peer's token gone this long while the bus is up: dead (or frozen), not an outage  # after the bus comes back, peers' tokens reappear within ~1 s: wait for them
 
 
 class StaleEpoch(RuntimeError):
@@ -68,6 +69,7 @@ class Node:
         self.inbox = Inbox()
         self.rejects = M.Rejects(log)
         self.dead: set[int] = set()  # peers whose liveliness token went away (and did not come back)
+        self.dead_since: dict[int, float] = {}  # peer -> monotonic time its token went away
         self.inputs: dict[int, tuple] = {}  # k -> (EpochInput, participants)
         self.states: dict[tuple[int, int], dict[int, NodeState]] = {}  # (k, r) -> uav -> state
         self.history: deque[bytes] = deque(maxlen=HISTORY)  # our last state frames
@@ -156,6 +158,7 @@ class Node:
                 self.dead.discard(kk.uav)
             else:
                 self.dead.add(kk.uav)
+                self.dead_since[kk.uav] = time.monotonic()
                 self.log.info("peer %d lost (liveliness)", kk.uav)
             return
         if tag == "query":
@@ -282,7 +285,10 @@ class Node:
         in a bus outage: waited for again for RECONNECT_GRACE_S after connectivity returns."""
         if u not in self.dead:
             return False
-        return self.connected() and time.monotonic() - self.online_at > RECONNECT_GRACE_S
+        now = time.monotonic()
+        if now - self.dead_since.get(u, 0.0) < DROP_CONFIRM_S:  # an outage deletes every token: let the burst arrive
+            return False
+        return self.connected() and now - self.online_at > RECONNECT_GRACE_S
 
     def gather(self, k: int, r: int, participants: set[int]) -> dict[int, NodeState]:
         """Wait for state (k, r) of every participant still live; re-query after peer_timeout.
@@ -314,7 +320,7 @@ class Node:
                 self.requery(k, r, missing)
                 requeried = waited
                 continue
-            if not self.pump(0.2, clear=False):
+            if not self.pump(0.1 if self.dead else 0.2, clear=False):
                 raise KeyboardInterrupt
         self.waiting = None
         have = self.states.get((k, r), {})
