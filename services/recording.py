@@ -250,15 +250,17 @@ def _indexes(t: np.ndarray, k: np.ndarray):
 
 
 def send_positions(algo: str, uav: int, t: np.ndarray, k: np.ndarray, pos: np.ndarray,
-                   rec: rr.RecordingStream | None = None, radius: float = 2.0) -> None:
-    """A whole trajectory of one UAV as one point per epoch (NaN epochs skipped)."""
+                   rec: rr.RecordingStream | None = None, radius: float = 2.0, style: bool = True) -> None:
+    """A whole trajectory of one UAV as one point per epoch (NaN epochs skipped); ``style=False``
+    skips the static style (already logged by an earlier call for the same entity)."""
     pos = np.asarray(pos, float)
     ok = np.all(np.isfinite(pos), axis=1)
     if not ok.any():
         return
     path = uav_path(algo, uav)
-    rr.log(path, rr.Points3D.from_fields(radii=[radius], colors=[algo_color(algo)], labels=[str(uav)]),
-           static=True, recording=rec)
+    if style:
+        rr.log(path, rr.Points3D.from_fields(radii=[radius], colors=[algo_color(algo)], labels=[str(uav)]),
+               static=True, recording=rec)
     rr.send_columns(path, indexes=_indexes(np.asarray(t)[ok], np.asarray(k)[ok]),
                     columns=rr.Points3D.columns(positions=pos[ok]), recording=rec)
 

@@ -13,6 +13,7 @@ expected estimate arrived, the run reached its end (the clock's ``done``) and no
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,8 @@ from swarmnav.evaluation import FAULT_RULE, RunResult, link_labels, truth_at_epo
 from swarmnav.wire import messages as M
 
 from . import journal as J
+
+COMMIT_S = 1.0  # the live recording is committed (a valid segment on disk) at most this often
 
 
 def excused_epochs(meta, uavs: list[int], kills: list[tuple[int, float]], restarts: list[tuple[int, float]]) -> np.ndarray:
@@ -75,6 +78,8 @@ class MonitorCore:
         # the recording: positions sent per epoch as they close
         self.sent = np.zeros((self.K, n), bool)
         self.logged_k = 0
+        self.last_commit = -1e9
+        self.styled: set[tuple[str, int]] = set()  # entities whose static style is in the recording
         self.radius = R.point_radius(self.truth.pos, list(self.meta.anchors().values()))
         R.log_styles([algo, "truth"], rec=self.rec)
         R.log_anchors(self.meta.anchors(), self.radius, rec=self.rec)
@@ -152,12 +157,17 @@ class MonitorCore:
         return [u for u in who if u in self.uavs and not got[self.uavs.index(u)]]
 
     # -- recording -------------------------------------------------------------------------------
-    def close_epochs(self, upto: int) -> None:
+    def close_epochs(self, upto: int, force: bool = False) -> None:
         """Send epochs up to ``upto`` to the recording (positions, truth, error series, links) and
-        flush it: what is on disk is at most the current epoch behind."""
+        commit it, at most once per COMMIT_S of wall time unless ``force`` (the journal already
+        holds every accepted message; this bounds the recording's cost to ~1 batch a second)."""
         upto = min(upto, self.K)
         if upto <= self.logged_k:
             return
+        now = time.monotonic()
+        if not force and now - self.last_commit < COMMIT_S:
+            return
+        self.last_commit = now
         R, a, rec, t, tr = self.R, self.algo, self.rec, self.truth.t, self.truth
         lo, hi = self.logged_k, upto
         ks = np.arange(lo + 1, hi + 1)
@@ -170,8 +180,12 @@ class MonitorCore:
         for j, u in enumerate(self.uavs):
             m = new[:, j]
             if m.any():
-                R.send_positions(a, u, t[:hi][m], kall[m], self.res.pos[:hi][m, j], rec=rec, radius=self.radius)
-            R.send_positions("truth", u, t[sl], ks, tr.pos[sl, j], rec=rec, radius=self.radius * 0.75)
+                R.send_positions(a, u, t[:hi][m], kall[m], self.res.pos[:hi][m, j], rec=rec, radius=self.radius,
+                                 style=(a, u) not in self.styled)
+                self.styled.add((a, u))
+            R.send_positions("truth", u, t[sl], ks, tr.pos[sl, j], rec=rec, radius=self.radius * 0.75,
+                             style=("truth", u) not in self.styled)
+            self.styled.add(("truth", u))
         ep = pos - tr.pos[sl]
         ev = self.res.vel[sl] - tr.vel[sl]
         with np.errstate(invalid="ignore"):
@@ -270,7 +284,7 @@ class MonitorCore:
     def finish(self) -> dict:
         """Close every epoch in the recording, write the report, close the recording."""
         try:
-            self.close_epochs(self.K)
+            self.close_epochs(self.K, force=True)
             return self.report()
         finally:
             self.sink.close()

@@ -82,6 +82,8 @@ class Node:
         self.sim_lost_at: float | None = None  # monotonic time the sensor-sim's token went away
         self.offline_since: float | None = None  # monotonic time this session was last seen without a router
         self.online_at = 0.0  # monotonic time connectivity was last seen restored
+        self.peer_done_k: dict[int, int] = {}  # peer -> last epoch it is known to have finished (from a query reply)
+        self.republish = False  # the bus came back: publish our current state again (it may have been lost)
         self.duplicates = 0  # re-sent inputs of epochs already done (after an outage): ignored
         self.done = False
         self.bytes_out = 0
@@ -128,8 +130,11 @@ class Node:
             self.s.liveliness().declare_subscriber(keys.alive_all(self.run), ib.channel(), history=True),
             self.s.declare_queryable(keys.uav(self.run, self.uav, "state"), ib.channel()),
         ]
+        # peer states are stored and queries answered right in their pump threads: a query must be
+        # answered even while this node's loop is blocked (e.g. in its own re-query of a peer)
+        direct = {"state": self.on_state, "query": self.answer}
         for tag, sub in zip(("own", "state", "clock", "alive", "query"), self.subs):
-            ib.attach(tag, sub, direct=self.on_state if tag == "state" else None)
+            ib.attach(tag, sub, direct=direct.get(tag))
         self.pub_state = self.s.declare_publisher(keys.uav(self.run, self.uav, "state"))
         # BLOCK: the monitor must record every estimate (a DROP publisher lost one under load)
         bl = zenoh.CongestionControl.BLOCK
@@ -160,9 +165,6 @@ class Node:
                 self.dead.add(kk.uav)
                 self.dead_since[kk.uav] = time.monotonic()
                 self.log.info("peer %d lost (liveliness)", kk.uav)
-            return
-        if tag == "query":
-            self.answer(item)
             return
         payload = item.payload.to_bytes()
         kk = parse_key(item.key_expr, self.rejects)
@@ -213,11 +215,12 @@ class Node:
         w = self.waiting
         return w is not None and w[0] == (m.k, m.r) and w[1] <= have.keys()
 
-    def answer(self, q):
-        """State queryable: ``?k=K;r=R`` -> that state if held, else the latest states + estimates."""
+    def answer(self, q) -> bool:
+        """State queryable (in its pump thread): ``?k=K;r=R`` -> that state if held, else the latest
+        states; always the recent estimates (a peer learns that we finished an epoch)."""
         try:
             params = {p.split("=")[0]: p.split("=")[1] for p in str(q.parameters).split(";") if "=" in p}
-            hist = [M.decode_state(b) for b in self.history]
+            hist = [M.decode_state(b) for b in list(self.history)]
             if "k" in params and "r" in params:
                 k, r = int(params["k"]), int(params["r"])
                 hist = [s for s in hist if s.k == k and s.r == r]
@@ -227,6 +230,7 @@ class Node:
             self.rejects.add("query", M.WireError("bad_query", str(e)))
         finally:
             q.drop()
+        return False
 
     def pump(self, timeout: float, clear: bool = True) -> bool:
         """Handle one inbox item (waiting up to timeout). False when stopping."""
@@ -251,15 +255,20 @@ class Node:
         pub.put(b)
 
     def requery(self, k: int, r: int, missing: list[int]) -> None:
-        for u in missing:
+        """Ask the missing peers for their state (k, r), all at once; a reply whose estimates show
+        the peer already finished epoch k tells us to stop waiting for it."""
+        pending = [(u, self.s.get(keys.uav(self.run, u, "state") + f"?k={k};r={r}", timeout=0.5)) for u in missing]
+        for u, replies in pending:
             try:
-                for rep in self.s.get(keys.uav(self.run, u, "state") + f"?k={k};r={r}", timeout=0.5):
+                for rep in replies:
                     if rep.ok is None:
                         continue
                     h = M.decode(M.HistoryMsg, rep.ok.payload.to_bytes(), uav=u)
                     for s in h.states:
                         if s.k == k and s.r == r:
                             self.states.setdefault((k, r), {})[u] = M.msg_to_state(s)
+                    if any(e.k >= k for e in h.estimates):
+                        self.peer_done_k[u] = max(self.peer_done_k.get(u, 0), max(e.k for e in h.estimates))
             except M.WireError as e:
                 self.rejects.add("state-query", e)
 
@@ -275,6 +284,7 @@ class Node:
             if self.offline_since is not None:
                 self.offline_since = None
                 self.online_at = now
+                self.republish = True
             return True
         if self.offline_since is None:
             self.offline_since = now
@@ -303,7 +313,11 @@ class Node:
             have = self.states.get((k, r), {})
             # a participant is waited for until its liveliness token goes away (the sensor-sim saw
             # it live when it opened the epoch, so a token we have not seen yet is not a death)
-            expect = {u for u in participants if u != self.uav and not (u in self.dead and self.peer_gone(u))}
+            expect = {u for u in participants if u != self.uav and not (u in self.dead and self.peer_gone(u))
+                      and self.peer_done_k.get(u, 0) < k}
+            if self.republish and self.history:  # our state of this round may have gone into the outage
+                self.republish = False
+                self.publish(self.pub_state, self.history[-1])
             self.waiting = ((k, r), expect)  # the state pump wakes us once all of these are in
             missing = sorted(expect - set(have))
             if not missing:
