@@ -11,9 +11,10 @@ export OMP_NUM_THREADS=1
 export OPENBLAS_NUM_THREADS=1
 export MKL_NUM_THREADS=1
 
-.PHONY: setup run dropout miluv chaos view test test-fast evaluate clean help
-help:            ## list targets
+.PHONY: setup demo run dropout miluv chaos view test test-fast evaluate clean help
+help:            ## list targets and variables
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*##/ —/'
+	@echo "variables: CONFIG=$(CONFIG) ALGO=$(ALGO) SEED=$(SEED) MILUV=$(MILUV) (e.g. make run CONFIG=configs/smoke.toml ALGO=fg SEED=2)"
 
 setup: $(STAMP)  ## create/refresh .venv with the pinned dependencies
 $(STAMP): requirements.lock pyproject.toml
@@ -22,6 +23,12 @@ $(STAMP): requirements.lock pyproject.toml
 	$(BIN)/python -m pip install -q -r requirements.lock
 	$(BIN)/python -m pip install -q --no-deps -e .
 	touch $(STAMP)
+
+demo: setup      ## 30-second first look: smoke (5 UAVs, 60 s), all five algorithms side by side in one recording (runs/demo)
+	rm -rf runs/demo
+	$(BIN)/swarmnav evaluate --config configs/smoke.toml --algos atvfg,fg,fkf,ins,central --seeds 1 --out runs/demo
+	@if [ -n "$${DISPLAY:-}$${WAYLAND_DISPLAY:-}" ]; then $(BIN)/rerun runs/demo/evaluate.rrd & \
+	else echo "recording: runs/demo/evaluate.rrd (no display here: open it with '$(CURDIR)/$(BIN)/rerun runs/demo/evaluate.rrd' on a machine with one, or serve it with --web-viewer)"; fi
 
 run: setup       ## the paper scenario as a real multi-process Zenoh swarm (results in runs/latest)
 	$(BIN)/swarmnav launch --config $(CONFIG) --algo $(ALGO) --seed $(SEED)
@@ -54,5 +61,5 @@ test: setup      ## the whole test suite
 test-fast: setup ## unit tests only (no multi-process, no slow)
 	$(BIN)/python -m pytest -q -m "not slow and not integration"
 
-clean:
+clean:           ## remove every run directory (runs/) and the test cache
 	rm -rf runs .pytest_cache

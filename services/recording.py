@@ -18,6 +18,8 @@ Timelines: ``sim_time`` (duration, seconds of simulation time) and ``epoch`` (se
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
@@ -55,6 +57,21 @@ def links_path(algo: str) -> str:
 
 def error_path(algo: str, quantity: str, who: str) -> str:
     return f"/errors/{algo}/{quantity}/{who}"
+
+
+def detection_path(algo: str) -> str:
+    return f"/detection/{algo}"
+
+
+def labels_path(algo: str) -> str:
+    return f"/labels/{algo}"
+
+
+CLASS_LABELS = {0: "H0 failed (dropped)", 1: "H1 interfered (down-weighted)", 2: "H2 normal"}
+EVENT_LEVELS = {"dropout": "WARN", "process_died": "ERROR", "bus_outage": "ERROR", "epochs_lost": "ERROR",
+                "monitor_lost": "ERROR", "sensor_sim_lost": "ERROR", "rejected_messages": "WARN",
+                "rejoin": "INFO", "rebootstrap": "INFO", "bus_restored": "INFO", "scheduled_kill": "INFO",
+                "scheduled_restart": "INFO"}
 
 
 # -- recordings ---------------------------------------------------------------------------------
@@ -150,26 +167,60 @@ def close_recording(rec: rr.RecordingStream) -> None:
     rec.disconnect()
 
 
-def default_blueprint(algos: list[str]) -> rrb.Blueprint:
-    """3-D truth vs estimates with trails, link graph, error time series, event log."""
+@dataclass(frozen=True)
+class ViewSpec:
+    """One view of the default blueprint: what it shows (entity queries: exact paths or a trailing
+    ``/**``, never another ``*``) and the component its entities must carry to draw anything.
+    tests/test_recording_blueprint.py holds every view of a real recording to having data."""
+
+    kind: str  # "3d" | "timeseries" | "textlog"
+    name: str
+    contents: tuple[str, ...]
+    data: str  # e.g. "Scalars:scalars": the component an entity needs to show in this view
+    trail: bool = False  # 3-D: the last TRAIL_S seconds instead of the latest position
+
+
+def blueprint_views(algos: list[str], link_algos: list[str] | None = None) -> list[ViewSpec]:
+    """The default layout: the swarm now (labelled) and with 30 s trails, link classes per
+    algorithm, error series with the estimator's own 3σ bound, link classes per epoch, events."""
+    link_algos = list(algos if link_algos is None else link_algos)
+    v = [ViewSpec("3d", "swarm now: truth (grey) vs estimates, labelled", ("/swarm/**", "/labels/**"), "Points3D:positions"),
+         ViewSpec("3d", f"last {TRAIL_S:g} s: truth (grey) vs estimates", ("/swarm/**",), "Points3D:positions", trail=True)]
+    v += [ViewSpec("3d", f"links {a}: H2 normal / H1 interfered / H0 failed", (links_path(a), "/swarm/truth/**", "/swarm/anchors"),
+                   "LineStrips3D:strips") for a in link_algos]
+    ts = [("swarm 3-D position error and 3σ bound (m)", ("pos_3d", "pos_3sigma"), "swarm"),
+          ("UAV 1 3-D position error and 3σ bound (m)", ("pos_3d", "pos_3sigma"), "uav1"),
+          ("swarm 3-D velocity error (m/s)", ("vel_3d",), "swarm")]
+    v += [ViewSpec("timeseries", name, tuple(error_path(a, q, who) for a in algos for q in qs), "Scalars:scalars")
+          for name, qs, who in ts]
+    if link_algos:
+        v.append(ViewSpec("timeseries", "link classifications per epoch", tuple(f"{detection_path(a)}/**" for a in link_algos),
+                          "Scalars:scalars"))
+    v.append(ViewSpec("textlog", "events", ("/events",), "TextLog:text"))
+    return v
+
+
+def default_blueprint(algos: list[str], link_algos: list[str] | None = None) -> rrb.Blueprint:
+    """The blueprint built from :func:`blueprint_views`: 3-D views left, series and events right."""
     trail = rrb.VisibleTimeRange(TIMELINE_T, start=rrb.TimeRangeBoundary.cursor_relative(seconds=-TRAIL_S),
                                  end=rrb.TimeRangeBoundary.cursor_relative(seconds=0.0))
-    link_views = [rrb.Spatial3DView(origin="/", contents=[f"/links/{a}/**", "/swarm/truth/**", "/swarm/anchors"],
-                                    name=f"links {a}")
-                  for a in algos]
+
+    def view(spec: ViewSpec):
+        if spec.kind == "3d":
+            return rrb.Spatial3DView(origin="/", contents=list(spec.contents), name=spec.name,
+                                     **({"time_ranges": [trail]} if spec.trail else {}))
+        if spec.kind == "timeseries":
+            return rrb.TimeSeriesView(origin="/", contents=list(spec.contents), name=spec.name)
+        return rrb.TextLogView(origin="/", contents=list(spec.contents), name=spec.name)
+
+    views = blueprint_views(algos, link_algos)
+    spatial = [view(x) for x in views if x.kind == "3d"]
+    right = [view(x) for x in views if x.kind != "3d"]
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Vertical(
-                rrb.Spatial3DView(origin="/swarm", name="truth vs estimates (30 s trails)", time_ranges=[trail]),
-                rrb.Tabs(*link_views, name="link classification") if link_views else rrb.TextLogView(origin="/events"),
-                row_shares=[3, 2],
-            ),
-            rrb.Vertical(
-                rrb.TimeSeriesView(origin="/errors", contents="/errors/*/pos_3d/swarm", name="swarm 3-D position error (m)"),
-                rrb.TimeSeriesView(origin="/errors", contents="/errors/*/pos_3d/uav1", name="UAV 1 3-D position error (m)"),
-                rrb.TimeSeriesView(origin="/errors", contents="/errors/*/vel_3d/swarm", name="swarm 3-D velocity error (m/s)"),
-                rrb.TextLogView(origin="/events", name="events"),
-            ),
+            rrb.Vertical(rrb.Tabs(*spatial[:2], name="swarm"), rrb.Tabs(*spatial[2:], name="link classification")
+                         if spatial[2:] else right.pop(), row_shares=[3, 2]),
+            rrb.Vertical(*right),
             column_shares=[3, 2],
         ),
         collapse_panels=False,
@@ -206,12 +257,24 @@ def set_epoch(k: int, t: float, rec: rr.RecordingStream | None = None) -> None:
     rr.set_time(TIMELINE_T, duration=float(t), recording=rec)
 
 
-def log_styles(algos: list[str], rec: rr.RecordingStream | None = None) -> None:
-    """Static series colours/names for every algorithm's error series."""
+def log_styles(algos: list[str], rec: rr.RecordingStream | None = None, link_algos: list[str] | None = None) -> None:
+    """Static series colours/names (every series named here receives data): error series per
+    algorithm (3σ bounds dashed-looking: thinner, lighter), link-class counts, and the link-class
+    legend (an AnnotationContext: class id -> label and colour)."""
     for a in algos:
-        for q in ("pos_3d", "vel_3d"):
-            for who in ("uav1", "swarm"):
-                rr.log(error_path(a, q, who), rr.SeriesLines(colors=[algo_color(a)], names=[a]), static=True, recording=rec)
+        c = algo_color(a)
+        light = tuple(int(x + (255 - x) * 0.5) for x in c)
+        for who in ("uav1", "swarm"):
+            rr.log(error_path(a, "pos_3d", who), rr.SeriesLines(colors=[c], names=[f"{a} error"]), static=True, recording=rec)
+            rr.log(error_path(a, "pos_3sigma", who), rr.SeriesLines(colors=[light], names=[f"{a} 3σ"], widths=[0.75]),
+                   static=True, recording=rec)
+        rr.log(error_path(a, "vel_3d", "swarm"), rr.SeriesLines(colors=[c], names=[a]), static=True, recording=rec)
+    for a in (algos if link_algos is None else link_algos):
+        for cls, label in CLASS_LABELS.items():
+            rr.log(f"{detection_path(a)}/H{cls}", rr.SeriesLines(colors=[CLASS_COLORS[cls]], names=[f"{a} {label}"]),
+                   static=True, recording=rec)
+    rr.log("/links", rr.AnnotationContext([rr.AnnotationInfo(id=c, label=lbl, color=CLASS_COLORS[c])
+                                           for c, lbl in CLASS_LABELS.items()]), static=True, recording=rec)
 
 
 def log_position(algo: str, uav: int, pos, rec: rr.RecordingStream | None = None, radius: float = 2.0) -> None:
@@ -238,8 +301,11 @@ def log_error(algo: str, quantity: str, who: str, value: float, rec: rr.Recordin
 
 
 def log_event(kind: str, uav: int, t: float, text: str | None = None, rec: rr.RecordingStream | None = None,
-              level: str = "WARN") -> None:
-    rr.log("/events", rr.TextLog(text or f"t={t:g} s: {kind} UAV {uav}", level=level), recording=rec)
+              level: str | None = None) -> None:
+    """One event as a sentence, at a level by kind (ERROR: data lost; WARN: a fault; INFO: recovery)."""
+    who = f" of UAV {uav}" if uav else ""
+    rr.log("/events", rr.TextLog(text or f"t = {t:g} s: {kind.replace('_', ' ')}{who}", level=level or EVENT_LEVELS.get(kind, "WARN")),
+           recording=rec)
 
 
 # -- bulk logging (whole runs) ---------------------------------------------------------------------
@@ -259,7 +325,7 @@ def send_positions(algo: str, uav: int, t: np.ndarray, k: np.ndarray, pos: np.nd
         return
     path = uav_path(algo, uav)
     if style:
-        rr.log(path, rr.Points3D.from_fields(radii=[radius], colors=[algo_color(algo)], labels=[str(uav)]),
+        rr.log(path, rr.Points3D.from_fields(radii=[radius], colors=[algo_color(algo)], show_labels=False),
                static=True, recording=rec)
     rr.send_columns(path, indexes=_indexes(np.asarray(t)[ok], np.asarray(k)[ok]),
                     columns=rr.Points3D.columns(positions=pos[ok]), recording=rec)
@@ -283,7 +349,27 @@ def send_links(algo: str, t: np.ndarray, k: np.ndarray, segments: np.ndarray, cl
         return
     path = links_path(algo)
     rr.log(path, rr.LineStrips3D.from_fields(radii=[radius]), static=True, recording=rec)
-    lut = np.array([CLASS_COLORS.get(c, (128, 128, 128)) for c in range(3)] + [(128, 128, 128)], np.uint8)
-    colors = lut[np.clip(np.asarray(classes, int), 0, 3)]
-    cols = rr.LineStrips3D.columns(strips=segments, colors=colors).partition(np.asarray(counts, int))
+    # class ids resolve through the AnnotationContext at /links (label + colour: the legend)
+    ids = np.clip(np.asarray(classes, int), 0, 2).astype(np.uint16)
+    cols = rr.LineStrips3D.columns(strips=segments, class_ids=ids).partition(np.asarray(counts, int))
     rr.send_columns(path, indexes=_indexes(t, k), columns=cols, recording=rec)
+    # link classifications per epoch, one series per class
+    kk = np.repeat(np.arange(len(counts)), np.asarray(counts, int))
+    for c in range(3):
+        n = np.bincount(kk[ids == c], minlength=len(counts)).astype(float)
+        send_series(f"{detection_path(algo)}/H{c}", t, k, n, rec=rec)
+
+
+def send_labels(algo: str, t: np.ndarray, k: np.ndarray, pos: np.ndarray, uavs: list[int],
+                rec: rr.RecordingStream | None = None) -> None:
+    """The current position of every UAV with its label (pos: K x N x 3), one row per epoch; shown
+    only by the latest-at 3-D view, so a trail never carries labels."""
+    pos = np.asarray(pos, float)
+    ok = np.all(np.isfinite(pos), axis=2)
+    if not ok.any():
+        return
+    rows = [i for i in range(len(t)) if ok[i].any()]
+    pts = np.concatenate([pos[i][ok[i]] for i in rows])
+    lbl = [f"{algo} {u}" for i in rows for u, o in zip(uavs, ok[i]) if o]
+    cols = rr.Points3D.columns(positions=pts, labels=lbl).partition([int(ok[i].sum()) for i in rows])
+    rr.send_columns(labels_path(algo), indexes=_indexes(np.asarray(t)[rows], np.asarray(k)[rows]), columns=cols, recording=rec)

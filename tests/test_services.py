@@ -282,3 +282,15 @@ def test_default_run_dir_is_one_level():
     d = default_run_dir("miluv/cirObstacles_3_random_0")
     assert d.parent == Path("runs") and d.name.endswith("-miluv-cirObstacles_3_random_0")
     assert default_run_dir("paper").name.endswith("-paper") and default_run_dir("//").name.endswith("-run")
+
+
+def test_every_view_of_the_launch_recording_has_data(base):
+    """The monitor's recording (per-epoch segments merged at the end) against its own blueprint."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    import rrdcheck
+
+    from services import recording as R
+
+    rows, static = rrdcheck.recorded(base["dir"] / "swarm.rrd")
+    assert rrdcheck.view_problems(R.blueprint_views([ALGO], [ALGO]), rows, static) == []
+    assert rows[R.labels_path(ALGO)]["Points3D:labels"] == 60 and "Points3D:labels" not in rows[R.uav_path(ALGO, 1)]

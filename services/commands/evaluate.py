@@ -423,11 +423,12 @@ def _write_rrd(path: Path, res0: dict, truth, anchors: dict) -> None:
     from services import recording as R
 
     algos = list(res0)
-    rec = R.open_recording(path, blueprint=R.default_blueprint([a for a in algos if len(res0[a].links)]))
+    link_algos = [a for a in algos if len(res0[a].links)]
+    rec = R.open_recording(path, blueprint=R.default_blueprint(algos, link_algos))
     try:
         t = truth.t
         k = np.arange(1, len(t) + 1)
-        R.log_styles(algos, rec)
+        R.log_styles(algos, rec, link_algos)
         # point sizes scaled to the scene (km-scale swarm or an indoor flight), anchors drawn once
         radius = R.point_radius(truth.pos, list(anchors.values()))
         R.log_anchors(anchors, radius, rec)
@@ -439,9 +440,13 @@ def _write_rrd(path: Path, res0: dict, truth, anchors: dict) -> None:
                 R.send_positions(a, int(u), t, k, r.pos[:, j], rec, radius=radius)
             pe = np.linalg.norm(r.pos - truth.pos, axis=2)
             ve = np.linalg.norm(r.vel - truth.vel, axis=2)
+            R.send_labels(a, t, k, r.pos, uavs, rec)
+            tr3 = np.trace(r.pos_cov, axis1=2, axis2=3)  # K x N: the estimator's own 3-D position variance
             if 1 in uavs:
                 R.send_series(R.error_path(a, "pos_3d", "uav1"), t, k, pe[:, uavs.index(1)], rec)
+                R.send_series(R.error_path(a, "pos_3sigma", "uav1"), t, k, 3 * np.sqrt(tr3[:, uavs.index(1)]), rec)
             R.send_series(R.error_path(a, "pos_3d", "swarm"), t, k, np.sqrt(np.nanmean(pe**2, axis=1)), rec)
+            R.send_series(R.error_path(a, "pos_3sigma", "swarm"), t, k, 3 * np.sqrt(np.nanmean(tr3, axis=1)), rec)
             R.send_series(R.error_path(a, "vel_3d", "swarm"), t, k, np.sqrt(np.nanmean(ve**2, axis=1)), rec)
             if len(r.links):
                 R.send_links(a, t, k, *_link_segments(r, truth.uavs), rec=rec, radius=0.15 * radius)

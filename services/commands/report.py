@@ -47,7 +47,10 @@ def rebuild(run_dir: Path) -> dict:
     if not ds.is_dir():
         raise SwarmnavError(f"the run's dataset {h['dataset']} is gone; put it back (or at {run_dir / 'dataset'}) and retry")
     tmp = run_dir / "swarm.rrd.rebuild"
-    sink = R.FileRecording(tmp, recording_id=h["run"], blueprint=R.default_blueprint([h["algo"]]))
+    from services.monitor.core import LINK_ALGOS
+
+    sink = R.FileRecording(tmp, recording_id=h["run"],
+                           blueprint=R.default_blueprint([h["algo"]], [h["algo"]] if h["algo"] in LINK_ALGOS else []))
     core = MonitorCore(run=h["run"], dataset=ds, seed=h["seed"], algo=h["algo"], out=run_dir, sink=sink,
                        kills=h.get("kills", []), restarts=h.get("restarts", []), security=h.get("security"),
                        config_sha256=h.get("config_sha256"))

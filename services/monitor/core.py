@@ -25,6 +25,7 @@ from swarmnav.wire import messages as M
 
 from . import journal as J
 
+LINK_ALGOS = ("atvfg", "fg", "fkf")  # the estimators that classify links (ins reports none)
 COMMIT_S = 1.0  # the live recording is committed (a valid segment on disk) at most this often
 
 
@@ -81,7 +82,7 @@ class MonitorCore:
         self.last_commit = -1e9
         self.styled: set[tuple[str, int]] = set()  # entities whose static style is in the recording
         self.radius = R.point_radius(self.truth.pos, list(self.meta.anchors().values()))
-        R.log_styles([algo, "truth"], rec=self.rec)
+        R.log_styles([algo], rec=self.rec, link_algos=[algo] if algo in LINK_ALGOS else [])
         R.log_anchors(self.meta.anchors(), self.radius, rec=self.rec)
 
     # -- inputs ---------------------------------------------------------------------------------
@@ -191,15 +192,20 @@ class MonitorCore:
         with np.errstate(invalid="ignore"):
             swarm_p = np.array([np.sqrt(np.mean(np.sum(ep[i][have[i]] ** 2, axis=1))) if have[i].any() else np.nan for i in range(len(ks))])
             swarm_v = np.array([np.sqrt(np.mean(np.sum(ev[i][have[i]] ** 2, axis=1))) if have[i].any() else np.nan for i in range(len(ks))])
+        tr3 = np.trace(self.res.pos_cov[sl], axis1=2, axis2=3)  # the estimators' own 3-D position variance
         ok = np.isfinite(swarm_p)
         if ok.any():
             R.send_series(R.error_path(a, "pos_3d", "swarm"), t[sl][ok], ks[ok], swarm_p[ok], rec=rec)
             R.send_series(R.error_path(a, "vel_3d", "swarm"), t[sl][ok], ks[ok], swarm_v[ok], rec=rec)
+            with np.errstate(invalid="ignore"):
+                R.send_series(R.error_path(a, "pos_3sigma", "swarm"), t[sl][ok], ks[ok], 3 * np.sqrt(np.nanmean(tr3[ok], axis=1)), rec=rec)
+        R.send_labels(a, t[sl], ks, pos, self.uavs, rec=rec)
         if 1 in self.uavs:
             j1 = self.uavs.index(1)
             m = have[:, j1]
             if m.any():
                 R.send_series(R.error_path(a, "pos_3d", "uav1"), t[sl][m], ks[m], np.linalg.norm(ep[m, j1], axis=1), rec=rec)
+                R.send_series(R.error_path(a, "pos_3sigma", "uav1"), t[sl][m], ks[m], 3 * np.sqrt(tr3[m, j1]), rec=rec)
         by_k: dict[int, list] = {}
         for k, u, o, c, *_ in self.links:
             if lo < k <= hi:

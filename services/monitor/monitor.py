@@ -64,8 +64,10 @@ class Monitor:
                   "kills": args.kill, "restarts": args.restart, "config_sha256": args.config_sha256,
                   "security": {"mode": args.security_mode, "acl": args.acl == "on"}}
         jr = J.JournalWriter(J.journal_path(out), header)
+        from services.monitor.core import LINK_ALGOS
+
         sink = R.SegmentedRecording(out / "recording", out / "swarm.rrd", recording_id=args.run,
-                                    blueprint=R.default_blueprint([args.algo]))
+                                    blueprint=R.default_blueprint([args.algo], [args.algo] if args.algo in LINK_ALGOS else []))
         self.core = MonitorCore(run=args.run, dataset=Path(args.dataset), seed=args.seed, algo=args.algo, out=out, sink=sink,
                                 kills=args.kill, restarts=args.restart, security=header["security"],
                                 config_sha256=args.config_sha256, journal=jr, log=log)
