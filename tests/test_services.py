@@ -181,7 +181,7 @@ def test_recording_reads_back(smoke, base):
     assert rows[f"/links/{ALGO}"] == K, rows
     for series in ("pos_3d/swarm", "vel_3d/swarm", "pos_3d/uav1"):
         assert rows[f"/errors/{ALGO}/{series}"] == K, (series, rows)
-    assert rows["/events"] == 1, rows  # the rejected garbage clock
+    assert rows["/events"] == 2, rows  # the run's start line and the rejected garbage clock
 
 
 def test_dropout_and_rejoin(smoke, drop, truth):
@@ -222,7 +222,7 @@ def test_dropout_and_rejoin(smoke, drop, truth):
     for chunk in rr.chunk.RrdReader(str(drop["dir"] / "swarm.rrd")).stream().to_chunks():
         if not chunk.is_static:
             rows[str(chunk.entity_path)] += chunk.num_rows
-    assert rows["/events"] == 5 and rows[f"/swarm/{ALGO}/uav2"] == int((~gone).sum()), rows
+    assert rows["/events"] == 6 and rows[f"/swarm/{ALGO}/uav2"] == int((~gone).sum()), rows
     _clean_exit(drop)
 
 

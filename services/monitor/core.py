@@ -84,6 +84,10 @@ class MonitorCore:
         self.radius = R.point_radius(self.truth.pos, list(self.meta.anchors().values()))
         R.log_styles([algo], rec=self.rec, link_algos=[algo] if algo in LINK_ALGOS else [])
         R.log_anchors(self.meta.anchors(), self.radius, rec=self.rec)
+        R.set_epoch(0, self.meta.t_start, rec=self.rec)
+        R.log_event("run_started", 0, self.meta.t_start, rec=self.rec, level="INFO",
+                    text=f"distributed run {run}: {len(self.uavs)} UAVs, {algo}, security {self.security.get('mode')} "
+                         f"(ACL {'on' if self.security.get('acl') else 'off'})")
 
     # -- inputs ---------------------------------------------------------------------------------
     def event(self, kind: str, uav: int = 0, t: float | None = None, **extra) -> None:
