@@ -4,14 +4,19 @@ Small ``log_*`` functions for one epoch (the live monitor), ``send_*`` bulk vers
 ``rr.send_columns`` (evaluate logs whole runs at once), two named timelines and one default
 blueprint. Entity layout (algorithm names as in DESIGN.md §4)::
 
-    /swarm/truth/uav<id>          Points3D  truth position
-    /swarm/anchors                Points3D  fixed UWB anchors (static; recorded datasets)
-    /swarm/<algo>/uav<id>         Points3D  estimate (trails: the 3-D view shows the last 30 s)
-    /links/<algo>                 LineStrips3D  links of the epoch coloured by class (H2 green, H1 amber, H0 red)
-    /errors/<algo>/pos_3d/uav1    Scalars   3-D position error of UAV 1 (m)
-    /errors/<algo>/pos_3d/swarm   Scalars   RMS over UAVs of the 3-D position error (m)
-    /errors/<algo>/vel_3d/swarm   Scalars   RMS over UAVs of the 3-D velocity error (m/s)
-    /events                       TextLog   kills, rejoins, detections, ...
+    /swarm/truth/uav<id>            Points3D  truth position (grey, smaller)
+    /swarm/anchors                  Points3D  fixed UWB anchors (static; recorded datasets)
+    /swarm/<algo>/uav<id>           Points3D  estimate, unlabelled (the trail view shows the last 30 s)
+    /labels/<algo>                  Points3D  every UAV's current estimate with its label (latest-at view only)
+    /links                          AnnotationContext  the link-class legend: 0 H0 failed, 1 H1 interfered, 2 H2 normal
+    /links/<algo>                   LineStrips3D  links of the epoch by class id (H2 green, H1 amber, H0 red)
+    /detection/<algo>/H<c>          Scalars   links classified H<c> in the epoch
+    /errors/<algo>/pos_3d/uav1      Scalars   3-D position error of UAV 1 (m)
+    /errors/<algo>/pos_3sigma/uav1  Scalars   3·sqrt(trace P) of UAV 1: the estimator's own 3σ bound (m)
+    /errors/<algo>/pos_3d/swarm     Scalars   RMS over UAVs of the 3-D position error (m)
+    /errors/<algo>/pos_3sigma/swarm Scalars   3·sqrt(mean over UAVs of trace P) (m)
+    /errors/<algo>/vel_3d/swarm     Scalars   RMS over UAVs of the 3-D velocity error (m/s)
+    /events                         TextLog   dropouts, rejoins, outages, lost data, rejects (as sentences, with levels)
 
 Timelines: ``sim_time`` (duration, seconds of simulation time) and ``epoch`` (sequence).
 """
