@@ -72,3 +72,55 @@ def detection_figure(path: Path, t: np.ndarray, faulty: np.ndarray, tp: np.ndarr
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def write_figures(out: Path, res0: dict, truth, res_all: dict, truths: list, windows, ds, meta, dl) -> None:
+    """figures/*.png of a run (the paper's Fig. 7-10): UAV 1 and swarm position/velocity errors,
+    atvfg's detection over time. Written by ``swarmnav evaluate`` and by the monitor alike."""
+    import warnings
+
+    from swarmnav.evaluation import link_labels
+    from swarmnav.metrics import match_links_to_labels
+
+    from services.recording import algo_color
+
+    fig = out / "figures"
+    fig.mkdir(exist_ok=True)
+    if not res0:
+        return
+    colors = {a: algo_color(a) for a in res0}
+    t = truth.t
+    uavs = list(truth.uavs)
+    win = [(w.start_s, w.end_s) for w in windows]
+    if 1 in uavs:
+        j = uavs.index(1)
+        error_figure(fig / "pos_error_uav1.png", t, {a: r.pos[:, j] - truth.pos[:, j] for a, r in res0.items()},
+                     f"UAV 1 position error (seed {next(iter(res0.values())).seed})", "m", colors, win)
+        error_figure(fig / "vel_error_uav1.png", t, {a: r.vel[:, j] - truth.vel[:, j] for a, r in res0.items()},
+                     f"UAV 1 velocity error (seed {next(iter(res0.values())).seed})", "m/s", colors, win)
+
+    def rms(arrs):  # list of (K,N,3) -> (K,3), RMS over UAVs and seeds
+        e = np.concatenate(arrs, axis=1)
+        return np.sqrt(np.nanmean(e**2, axis=1))
+
+    error_figure(fig / "pos_error_swarm.png", t,
+                 {a: rms([r.pos - tr.pos for r, tr in zip(rl, truths)]) for a, rl in res_all.items()},
+                 "swarm position error (RMS over UAVs and seeds)", "m", colors, win, rms=True)
+    error_figure(fig / "vel_error_swarm.png", t,
+                 {a: rms([r.vel - tr.vel for r, tr in zip(rl, truths)]) for a, rl in res_all.items()},
+                 "swarm velocity error (RMS over UAVs and seeds)", "m/s", colors, win, rms=True)
+    if "atvfg" in res0 and len(res0["atvfg"].links):
+        r = res0["atvfg"]
+        lk = r.links
+        lab = link_labels(ds)
+        K = len(t)
+        cls, faulty, _, valid = match_links_to_labels(lk, lab, meta.fault_threshold_m, return_mask=True)
+        kk = lk["k"][valid].astype(int)
+        cnt = lambda m: np.bincount(kk[m] - 1, minlength=K)[:K] if len(kk) else np.zeros(K)  # noqa: E731
+        flagged = cls <= 1
+        with warnings.catch_warnings():  # epochs without any Δh (no ranges, sparse real data): NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            dh = np.nanmedian(np.where(np.isfinite(r.delta_h_m), r.delta_h_m, np.nan), axis=1) \
+                if np.isfinite(r.delta_h_m).any() else np.full(K, np.nan)
+        detection_figure(fig / "detection_atvfg.png", t, cnt(faulty), cnt(flagged & faulty), cnt(flagged & ~faulty),
+                         cnt(cls == 0), cnt(cls == 1), dh, dl)

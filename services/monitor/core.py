@@ -289,6 +289,13 @@ class MonitorCore:
         np.savez_compressed(self.out / "estimates.npz", t=r.t, uavs=r.uavs, pos=r.pos, vel=r.vel, pos_cov=r.pos_cov,
                             rounds=r.rounds, step_ms=r.step_ms, wait_ms=w, bytes_out=b, peers=self.peers, inc=self.inc)
         (self.out / "report.md").write_text(render_markdown(rep))
+        from services.figures import write_figures
+
+        try:  # the same figures/*.png as `swarmnav evaluate`
+            write_figures(self.out, {a: r}, tr, {a: [r]}, [tr], self.meta.gnss_outages, self.ds, self.meta, dl)
+        except Exception as e:  # a figure must never cost the report
+            if self.log is not None:
+                self.log.warning("figures not written: %s", e)
         return rep
 
     def finish(self) -> dict:

@@ -1,0 +1,147 @@
+"""Screenshot a Rerun recording as shown by Rerun's web viewer in headless Chromium.
+
+    python -m deploy.screenshot runs/demo/evaluate.rrd --out docs/img/viewer.png [--width 1600 --height 1000] [--wait 20]
+
+Serves RRD with `rerun --serve-web` (gRPC proxy + web viewer, both on free ports on 127.0.0.1, no
+browser is opened), points headless Chromium (software WebGL via SwiftShader) at it, waits --wait
+seconds for the viewer to load and replay the whole file (a file streamed through the proxy is shown
+in "follow" mode, so the time cursor ends at the last sample), then grabs the page over the DevTools
+protocol on a pipe (stdlib only, no playwright) and retries until the PNG is not blank/uniform.
+Every process it starts is stopped on exit, also on error. Needs `apt-get install chromium`.
+"""
+from __future__ import annotations
+
+import argparse, base64, contextlib, fcntl, io, json, os, select, shutil, signal, socket
+import subprocess, sys, tempfile, time, urllib.parse, urllib.request
+from pathlib import Path
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def find_chromium() -> str:
+    for name in (os.environ.get("CHROMIUM", ""), "chromium", "chromium-browser", "google-chrome"):
+        if name and (path := shutil.which(name)):
+            return path
+    sys.exit("error: chromium not found. Install it with `apt-get install chromium` (Debian/Ubuntu) or set CHROMIUM=/path/to/chrome")
+
+
+def stop(proc: subprocess.Popen | None) -> None:
+    """Stop a process started with start_new_session=True together with its children (its own process group)."""
+    if proc is None or proc.poll() is not None:
+        return
+    for sig, grace in ((signal.SIGTERM, 5), (signal.SIGKILL, 5)):
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, sig)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(grace)
+            return
+
+
+class DevTools:
+    """Minimal Chrome DevTools Protocol client over --remote-debugging-pipe (fd 3: commands in, fd 4: replies out)."""
+
+    def __init__(self, chrome: str, args: list[str]):
+        cmd_r, self.cmd_w = os.pipe()
+        self.res_r, res_w = os.pipe()
+
+        def child_fds() -> None:  # runs in the child: move the pipe ends to fds 3 and 4
+            hi = [fcntl.fcntl(fd, fcntl.F_DUPFD, 10) for fd in (cmd_r, res_w)]
+            os.dup2(hi[0], 3), os.dup2(hi[1], 4)
+
+        self.proc = subprocess.Popen([chrome, "--remote-debugging-pipe", *args], preexec_fn=child_fds, pass_fds=(3, 4),
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+        os.close(cmd_r), os.close(res_w)
+        self.buf, self.next_id = b"", 0
+
+    def call(self, method: str, session: str | None = None, timeout: float = 60, **params) -> dict:
+        self.next_id += 1
+        msg = {"id": self.next_id, "method": method, "params": params} | ({"sessionId": session} if session else {})
+        os.write(self.cmd_w, json.dumps(msg).encode() + b"\0")
+        deadline = time.monotonic() + timeout
+        while True:
+            while b"\0" in self.buf:
+                raw, self.buf = self.buf.split(b"\0", 1)
+                reply = json.loads(raw)
+                if reply.get("id") == self.next_id:
+                    if "error" in reply:
+                        raise RuntimeError(f"{method}: {reply['error']}")
+                    return reply["result"]
+            if not select.select([self.res_r], [], [], max(0.0, deadline - time.monotonic()))[0]:
+                raise TimeoutError(f"chromium did not answer {method} within {timeout} s")
+            if not (chunk := os.read(self.res_r, 1 << 20)):
+                raise RuntimeError(f"chromium exited (code {self.proc.poll()}) during {method}")
+            self.buf += chunk
+
+
+def looks_rendered(png: bytes) -> bool:
+    """True if the image is not blank: enough distinct colours and not one dominant colour (loading screen)."""
+    from PIL import Image
+    img = Image.open(io.BytesIO(png)).convert("RGB").resize((400, 250))
+    counts = sorted((c for c, _ in img.getcolors(400 * 250)), reverse=True)
+    return len(counts) > 200 and counts[0] < 0.9 * sum(counts)
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("rrd", type=Path)
+    ap.add_argument("--out", type=Path, default=Path("docs/img/viewer.png"))
+    ap.add_argument("--width", type=int, default=1600)
+    ap.add_argument("--height", type=int, default=1000)
+    ap.add_argument("--wait", type=float, default=20, help="seconds to let the viewer load before the first shot")
+    ap.add_argument("--retry", type=float, default=60, help="extra seconds to retry while the image is blank")
+    a = ap.parse_args(argv)
+    if not a.rrd.is_file():
+        sys.exit(f"error: {a.rrd} not found (make demo writes runs/demo/evaluate.rrd)")
+    chrome = find_chromium()
+    rerun = shutil.which("rerun", path=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+    if not rerun:
+        sys.exit("error: rerun CLI not found (pip install rerun-sdk)")
+    grpc, web = free_port(), free_port()
+    t0, server, dt = time.monotonic(), None, None
+    with tempfile.TemporaryDirectory(prefix="rr-shot-") as profile:
+        try:
+            server = subprocess.Popen([rerun, "--serve-web", "--bind", "127.0.0.1", "--port", str(grpc),
+                                       "--web-viewer-port", str(web), str(a.rrd)], start_new_session=True,
+                                      stdout=subprocess.DEVNULL, stderr=open(Path(profile) / "rerun.log", "wb"))
+            for _ in range(300):  # wait for the web viewer's HTTP server
+                if server.poll() is not None:
+                    raise RuntimeError(f"rerun exited early: {(Path(profile) / 'rerun.log').read_text()[-2000:]}")
+                with contextlib.suppress(OSError):
+                    urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=1).close()
+                    break
+                time.sleep(0.1)
+            source = urllib.parse.quote(f"rerun+http://127.0.0.1:{grpc}/proxy", safe="")
+            url = f"http://127.0.0.1:{web}/?url={source}"
+            flags = ["--headless", f"--window-size={a.width},{a.height}", "--hide-scrollbars", "--no-first-run",
+                     "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist",
+                     f"--user-data-dir={profile}/chrome", "--disable-dev-shm-usage"]
+            if os.geteuid() == 0:
+                flags.append("--no-sandbox")  # chromium refuses to run as root with the sandbox
+            dt = DevTools(chrome, [*flags, url])
+            page = next(t for t in dt.call("Target.getTargets")["targetInfos"] if t["type"] == "page")
+            session = dt.call("Target.attachToTarget", targetId=page["targetId"], flatten=True)["sessionId"]
+            dt.call("Emulation.setDeviceMetricsOverride", session, width=a.width, height=a.height,
+                    deviceScaleFactor=1, mobile=False)
+            time.sleep(a.wait)
+            deadline = time.monotonic() + a.retry
+            while True:
+                png = base64.b64decode(dt.call("Page.captureScreenshot", session, format="png")["data"])
+                if looks_rendered(png):
+                    break
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"viewer still blank/loading after {a.wait + a.retry:.0f} s (no WebGL?)")
+                time.sleep(3)
+            a.out.parent.mkdir(parents=True, exist_ok=True)
+            a.out.write_bytes(png)
+            print(f"wrote {a.out} ({a.width}x{a.height}, {len(png) // 1024} KiB) in {time.monotonic() - t0:.0f} s")
+        finally:
+            stop(dt.proc if dt else None)
+            stop(server)
+
+
+if __name__ == "__main__":
+    main()
