@@ -7,6 +7,8 @@ browser is opened), points headless Chromium (software WebGL via SwiftShader) at
 seconds for the viewer to load and replay the whole file (a file streamed through the proxy is shown
 in "follow" mode, so the time cursor ends at the last sample), then grabs the page over the DevTools
 protocol on a pipe (stdlib only, no playwright) and retries until the PNG is not blank/uniform.
+Unless --keep-panels, it then clicks the three panel toggles at the top right of the 0.41 viewer
+(blueprint, time, selection) so the views get the whole window and the time panel shrinks to one bar.
 Every process it starts is stopped on exit, also on error. Needs `apt-get install chromium`.
 """
 from __future__ import annotations
@@ -93,6 +95,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--height", type=int, default=1000)
     ap.add_argument("--wait", type=float, default=20, help="seconds to let the viewer load before the first shot")
     ap.add_argument("--retry", type=float, default=60, help="extra seconds to retry while the image is blank")
+    ap.add_argument("--keep-panels", action="store_true", help="keep the blueprint/selection/streams panels open")
     a = ap.parse_args(argv)
     if not a.rrd.is_file():
         sys.exit(f"error: {a.rrd} not found (make demo writes runs/demo/evaluate.rrd)")
@@ -128,13 +131,19 @@ def main(argv: list[str] | None = None) -> None:
                     deviceScaleFactor=1, mobile=False)
             time.sleep(a.wait)
             deadline = time.monotonic() + a.retry
-            while True:
-                png = base64.b64decode(dt.call("Page.captureScreenshot", session, format="png")["data"])
-                if looks_rendered(png):
-                    break
+            shot = lambda: base64.b64decode(dt.call("Page.captureScreenshot", session, format="png")["data"])
+            while not looks_rendered(png := shot()):
                 if time.monotonic() > deadline:
                     raise RuntimeError(f"viewer still blank/loading after {a.wait + a.retry:.0f} s (no WebGL?)")
                 time.sleep(3)
+            if not a.keep_panels:  # toggle icons sit 79, 52, 24 px from the right edge of the top bar
+                for dx in (79, 52, 24):
+                    for kind in ("mouseMoved", "mousePressed", "mouseReleased"):
+                        dt.call("Input.dispatchMouseEvent", session, type=kind, x=a.width - dx, y=17,
+                                button="left", clickCount=1)
+                    time.sleep(0.5)
+                time.sleep(2)
+                png = shot()
             a.out.parent.mkdir(parents=True, exist_ok=True)
             a.out.write_bytes(png)
             print(f"wrote {a.out} ({a.width}x{a.height}, {len(png) // 1024} KiB) in {time.monotonic() - t0:.0f} s")

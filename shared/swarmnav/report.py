@@ -158,7 +158,7 @@ def render_markdown(rep: dict) -> str:
     L.append(f"# swarmnav report — {rep['scenario']} ({rep['mode']})")
     L.append("")
     L.append(f"Seeds {rep['seeds']}, {rep['n_uavs']} UAVs, {rep['duration_s']:g} s. "
-             "RMSE pooled over UAVs, epochs and seeds (paper eq. 28, DESIGN.md §4).")
+             "RMSE pooled over UAVs, epochs and seeds (paper eq. 28; NEES and detection scoring: docs/estimators.md).")
     if "central" in algos:
         L.append("`central` is an **oracle**: one joint graph with the truly faulty links removed using the labels.")
     L.append("")
