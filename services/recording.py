@@ -353,7 +353,7 @@ def send_links(algo: str, t: np.ndarray, k: np.ndarray, segments: np.ndarray, cl
     if len(segments) == 0:
         return
     path = links_path(algo)
-    rr.log(path, rr.LineStrips3D.from_fields(radii=[radius]), static=True, recording=rec)
+    rr.log(path, rr.LineStrips3D.from_fields(radii=[radius], show_labels=False), static=True, recording=rec)
     # class ids resolve through the AnnotationContext at /links (label + colour: the legend)
     ids = np.clip(np.asarray(classes, int), 0, 2).astype(np.uint16)
     cols = rr.LineStrips3D.columns(strips=segments, class_ids=ids).partition(np.asarray(counts, int))
