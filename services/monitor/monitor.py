@@ -204,6 +204,8 @@ class Monitor:
                 M.decode(M.TruthMsg, payload, uav=kk.uav)  # validated; truth for scoring comes from the dataset
             elif tag == "est":
                 m = M.decode(M.EstimateMsg, payload, uav=kk.uav)
+                if m.k > self.clock_k + 1:  # an epoch the sensor-sim has not opened: forged, never first-come
+                    raise M.WireError("future", f"estimate of epoch {m.k}, clock at {self.clock_k}")
                 if max(abs(x) for x in m.pos) > self.a.envelope_m:
                     raise M.WireError("envelope", f"estimate of UAV {m.uav} outside the {self.a.envelope_m:g} m envelope")
                 self.core.on_estimate(m, payload)

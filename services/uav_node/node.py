@@ -78,6 +78,7 @@ class Node:
         self.inc = 0  # incarnation: bumped at every (re-)bootstrap, carried in the estimates
         self.need_bootstrap = bool(args.rejoin)  # the next epoch starts from a fresh alignment + peers
         self.newest_peer_k = 0  # newest epoch seen in a peer's state (the swarm moved on without us?)
+        self.clock_k = 0  # newest epoch the sensor-sim's clock opened (states beyond it cannot be genuine)
         self.sim_alive = False
         self.sim_lost_at: float | None = None  # monotonic time the sensor-sim's token went away
         self.offline_since: float | None = None  # monotonic time this session was last seen without a router
@@ -178,6 +179,8 @@ class Node:
                 return
             if c.done:
                 self.done = True
+            elif c.k > self.clock_k:
+                self.clock_k = c.k
             return
         if kk.topic != "input":
             return
@@ -207,6 +210,9 @@ class Node:
             self.rejects.add("state", e)
             return False
         if m.k <= self.k_done:  # late state of an epoch we finished (not hostile: peers may lag)
+            return False
+        if m.k > max(self.clock_k, self.k_done) + 1:  # an epoch the sensor-sim has not opened: forged
+            self.rejects.add("state", M.WireError("future", f"state of epoch {m.k}, clock at {self.clock_k}"))
             return False
         if m.k > self.newest_peer_k:
             self.newest_peer_k = m.k
