@@ -22,14 +22,17 @@ def _state(uav, k, r=0):
     return SimpleNamespace(key_expr=f"swarmnav/r1/uav/{uav}/state", payload=SimpleNamespace(to_bytes=lambda: M.encode_state(s)))
 
 
-def test_states_of_unopened_epochs_are_rejected_not_taken_as_the_swarm_moving_on():
+def test_states_of_unopened_epochs_never_make_a_node_drop_its_epoch():
     n = _node()
     n.clock_k, n.k_done = 5, 4
-    n.on_state(_state(3, 9))  # forged: the sensor-sim has not opened epoch 9
-    assert n.newest_peer_k == 0 and n.rejects.as_dict() == {"state:future": 1}
-    n.on_state(_state(3, 6))  # a peer one epoch ahead of the clock we have seen: legitimate
-    n.on_state(_state(1, 5))
-    assert n.newest_peer_k == 6 and set(n.states) == {(6, 0), (5, 0)}
+    n.on_state(_state(3, 2**31 - 1))  # far beyond any opened epoch: forged, rejected and counted
+    assert n.rejects.as_dict() == {"state:future": 1} and not n.states
+    n.on_state(_state(3, 9))  # not yet opened: kept (the clock may be late) but not taken as the swarm's epoch
+    assert n.newest_peer_k() == 0
+    n.on_state(_state(1, 6))  # a peer one epoch ahead of the clock we have seen: legitimate
+    assert n.newest_peer_k() == 6
+    n.clock_k = 8  # the clock opened epoch 8: now the state of 9 counts
+    assert n.newest_peer_k() == 9
     n.on_state(_state(1, 3))  # late state of an epoch already done: dropped quietly
     assert n.rejects.total == 1
 

@@ -68,11 +68,15 @@ def rebuild(run_dir: Path) -> dict:
                 elif ev.get("kind") not in DERIVED:
                     extra = {k: v for k, v in ev.items() if k not in ("t", "kind", "uav")}
                     core.event(ev["kind"], ev.get("uav", 0), t=ev.get("t"), **extra)
+                    if ev.get("kind") == "conflicting_estimates":  # the live monitor saw two senders: never complete
+                        core.conflicts += 1
+                        core.conflicting.add(int(ev.get("uav", 0)))
         except M.WireError:
             continue  # journalled only after validation: a record that fails now is corrupt, skip it
     for key in sorted(rejected):
-        core.reject(*key.split(":", 1)) if ":" in key else None
-    core.rejected = rejected
+        if key not in core.rejected and ":" in key and not key.startswith("uav"):
+            core.event("rejected_messages", 0, detail=key)
+    core.rejected.update(rejected)
     if not core.done:
         core.event("monitor_lost", 0, detail=f"the journal ends at epoch {core.k_now}: the monitor stopped before the run ended")
     rep = core.finish()

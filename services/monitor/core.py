@@ -76,6 +76,8 @@ class MonitorCore:
         self.k_now = 0
         self.done = False
         self.last_inc: dict[int, int] = {}
+        self.conflicts = 0  # estimates that contradict one already received for the same UAV and epoch
+        self.conflicting: set[int] = set()
         # the recording: positions sent per epoch as they close
         self.sent = np.zeros((self.K, n), bool)
         self.logged_k = 0
@@ -130,7 +132,16 @@ class MonitorCore:
         i, j = m.k - 1, self.uavs.index(m.uav)
         r = self.res
         if np.isfinite(r.pos[i, j, 0]):
-            return False  # a duplicate (recovered by query after an outage): the first one stands
+            # a duplicate: recovered by query after an outage (same content; the first one stands), or
+            # a second sender with UAV m.uav's identity saying something else: never silently dropped
+            if np.abs(np.asarray(m.pos) - r.pos[i, j]).max() > 1e-9:
+                self.conflicts += 1
+                if m.uav not in self.conflicting:
+                    self.conflicting.add(m.uav)
+                    self.event("conflicting_estimates", m.uav, t=m.t,
+                               detail=f"two different estimates of epoch {m.k}: a second sender holds this UAV's identity")
+                self.reject("estimate", "conflict")
+            return False
         if self.journal is not None and raw is not None:
             self.journal.write(J.ESTIMATE, raw)
         e = M.msg_to_estimate(m)
@@ -147,6 +158,11 @@ class MonitorCore:
         self.extra["wait_ms"][i, j] = m.wait_ms
         self.extra["bytes"][i, j] = m.bytes_out
         self.inc[i, j] = m.inc
+        for key, n in m.rejected.items():  # what the node itself rejected (hostile input it saw)
+            full = f"uav{m.uav}/{key}"
+            if full not in self.rejected:
+                self.event("rejected_messages", m.uav, t=m.t, detail=f"UAV {m.uav} rejected {key}")
+            self.rejected[full] = max(self.rejected.get(full, 0), int(n))
         prev = self.last_inc.get(m.uav)
         if prev is not None and m.inc > prev:
             self.event("rebootstrap", m.uav, t=m.t, detail=f"incarnation {m.inc} from epoch {m.k}")
@@ -241,10 +257,11 @@ class MonitorCore:
         miss = exp & ~got
         missing_by_uav = {str(u): int(miss[:, j].sum()) for j, u in enumerate(self.uavs)}
         recorded = int(got.any(axis=1).sum())
-        complete = bool(self.done and not miss.any() and not self.lost_epochs)
+        complete = bool(self.done and not miss.any() and not self.lost_epochs and not self.conflicts)
         return {"complete": complete, "epochs_expected": int(self.K), "epochs_recorded": recorded,
                 "estimates_expected": int(exp.sum()), "estimates_received": int((got & exp).sum()),
-                "missing_by_uav": missing_by_uav, "epochs_lost": sorted(self.lost_epochs)}
+                "missing_by_uav": missing_by_uav, "epochs_lost": sorted(self.lost_epochs),
+                "conflicting_estimates": int(self.conflicts)}
 
     def report(self) -> dict:
         from swarmnav import metrics

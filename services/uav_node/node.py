@@ -34,6 +34,7 @@ from swarmnav.wire import messages as M
 HISTORY = 20
 EST_HISTORY = 64  # estimates kept for the state queryable (recovered by the sensor-sim/monitor after an outage)
 RECONNECT_GRACE_S = 3.0
+FUTURE_SLACK = 50  # a peer state this many epochs beyond the clock (and our own) is forged: rejected
 DROP_CONFIRM_S = 0.3  # a peer's token gone this long while the bus is up: dead (or frozen), not an outage  # after the bus comes back, peers' tokens reappear within ~1 s: wait for them
 
 
@@ -77,7 +78,7 @@ class Node:
         self.k_done = 0  # last completed epoch
         self.inc = 0  # incarnation: bumped at every (re-)bootstrap, carried in the estimates
         self.need_bootstrap = bool(args.rejoin)  # the next epoch starts from a fresh alignment + peers
-        self.newest_peer_k = 0  # newest epoch seen in a peer's state (the swarm moved on without us?)
+        self.peer_newest: dict[int, int] = {}  # peer -> newest epoch seen in its states (the swarm moved on without us?)
         self.clock_k = 0  # newest epoch the sensor-sim's clock opened (states beyond it cannot be genuine)
         self.sim_alive = False
         self.sim_lost_at: float | None = None  # monotonic time the sensor-sim's token went away
@@ -211,11 +212,11 @@ class Node:
             return False
         if m.k <= self.k_done:  # late state of an epoch we finished (not hostile: peers may lag)
             return False
-        if m.k > max(self.clock_k, self.k_done) + 1:  # an epoch the sensor-sim has not opened: forged
+        if m.k > max(self.clock_k, self.k_done) + FUTURE_SLACK:  # far beyond any opened epoch: forged
             self.rejects.add("state", M.WireError("future", f"state of epoch {m.k}, clock at {self.clock_k}"))
             return False
-        if m.k > self.newest_peer_k:
-            self.newest_peer_k = m.k
+        if m.k > self.peer_newest.get(m.uav, 0):
+            self.peer_newest[m.uav] = m.k
         have = self.states.setdefault((m.k, m.r), {})
         have[m.uav] = m
         w = self.waiting
@@ -278,6 +279,11 @@ class Node:
             except M.WireError as e:
                 self.rejects.add("state-query", e)
 
+    def newest_peer_k(self) -> int:
+        """The newest epoch a peer has reached, counting only epochs the sensor-sim's clock has
+        opened (a forged state of a later epoch can never make us drop ours as stale)."""
+        return max((v for v in list(self.peer_newest.values()) if v <= self.clock_k + 1), default=0)
+
     def connected(self) -> bool:
         """This session reaches a router and the sensor-sim is there (a router outage deletes every
         remote liveliness token at once: peers that vanish then are not dead)."""
@@ -314,8 +320,8 @@ class Node:
         requeried = 0.0
         while True:
             self.inbox.ev.clear()  # before looking: a wake-up from here on is not lost
-            if self.newest_peer_k >= k + 2:
-                raise StaleEpoch(f"epoch {k}: peers are already at epoch {self.newest_peer_k}")
+            if (newest := self.newest_peer_k()) >= k + 2:
+                raise StaleEpoch(f"epoch {k}: peers are already at epoch {newest}")
             have = self.states.get((k, r), {})
             # a participant is waited for until its liveliness token goes away (the sensor-sim saw
             # it live when it opened the epoch, so a token we have not seen yet is not a death)
@@ -363,8 +369,8 @@ class Node:
     def run_epoch(self, k: int, first: bool) -> None:
         inp, part = self.inputs.pop(k)
         participants = set(part)
-        if self.newest_peer_k >= k + 2:  # buffered while we were frozen: the swarm is long past it
-            self.log.warning("epoch %d is stale (peers at epoch %d): skipped", k, self.newest_peer_k)
+        if self.newest_peer_k() >= k + 2:  # buffered while we were frozen: the swarm is long past it
+            self.log.warning("epoch %d is stale (peers at epoch %d): skipped", k, self.newest_peer_k())
             self.need_bootstrap = True
             self.skip_through(k)
             return
@@ -406,7 +412,8 @@ class Node:
                 self.cpu_est += time.process_time() - c1
         except StopIteration as stop:
             est = stop.value
-        em = M.estimate_to_msg(est, wait_ms=wait * 1e3, peers=sorted(used), bytes_out=0, inc=self.inc)
+        em = M.estimate_to_msg(est, wait_ms=wait * 1e3, peers=sorted(used), bytes_out=0, inc=self.inc,
+                               rejected=dict(list(self.rejects.as_dict().items())[:64]))
         links = M.LinksMsg(uav=self.uav, k=k, links=em.links).encode()
         size = len(em.encode())
         em.bytes_out = self.bytes_out - bytes0 + size + len(links)

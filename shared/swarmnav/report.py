@@ -292,6 +292,8 @@ def completeness_text(rep: dict) -> str:
            f"{rep.get('epochs_recorded')} of {rep.get('epochs_expected')} epochs recorded")
     if miss:
         txt += "; missing " + ", ".join(f"UAV {u}: {n}" for u, n in sorted(miss.items(), key=lambda x: int(x[0])))
+    if rep.get("conflicting_estimates"):
+        txt += f"; {rep['conflicting_estimates']} CONFLICTING estimates (a second sender with a UAV's identity)"
     if rej:
         txt += f"; {rej} hostile or malformed messages rejected"
     sec = rep.get("security")

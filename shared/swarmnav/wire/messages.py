@@ -292,6 +292,8 @@ class EstimateMsg(UavMsg):
     peers: list[UavId] = Field(default_factory=list)  # the peers whose states this epoch used
     bytes_out: int = Field(0, ge=0)  # bytes this node published for the epoch (state + estimate)
     inc: int = Field(0, ge=0)  # the sender's incarnation (bumped at every re-bootstrap)
+    # messages the sender rejected so far, "topic:reason" -> count (hostile or corrupt input it saw)
+    rejected: dict[Annotated[str, Field(max_length=64)], Annotated[int, Field(ge=0)]] = Field(default_factory=dict, max_length=64)
 
     @model_validator(mode="after")
     def _plausible(self):
