@@ -28,3 +28,34 @@ def test_never_appends_to_another_runs_journal(tmp_path):
     J.JournalWriter(J.journal_path(tmp_path), {"run": "a"}).close()
     with pytest.raises(FileExistsError):
         J.JournalWriter(J.journal_path(tmp_path), {"run": "b"})
+
+
+def test_monitor_core_flags_a_second_different_estimate(tmp_path):
+    """A second sender holding a UAV's identity cannot silently replace or pre-empt its estimates:
+    a different estimate for the same UAV and epoch is a conflict, and the run is never complete."""
+    import numpy as np
+
+    from services import recording as R
+    from services.monitor.core import MonitorCore
+    from swarmnav.config import load_config
+    from swarmnav.estimators.base import NodeEstimate
+    from swarmnav.sim import simulate
+    from swarmnav.wire import messages as M
+
+    ds = tmp_path / "ds"
+    simulate(load_config("configs/smoke.toml"), 1).write(ds)
+    core = MonitorCore(run="r1", dataset=ds, seed=1, algo="atvfg", out=tmp_path, sink=R.FileRecording(tmp_path / "x.rrd"))
+
+    def est(pos, rejected=None):
+        e = NodeEstimate(3, 1, 1.0, np.array(pos, float), np.zeros(3), np.eye(3), None, [], 1, 1.0, None, None)
+        return M.estimate_to_msg(e, rejected=rejected or {})
+
+    assert core.on_estimate(est([1.0, 2.0, 3.0]))
+    assert not core.on_estimate(est([1.0, 2.0, 3.0]))  # the same one again (recovered by query): fine
+    assert core.conflicts == 0
+    assert not core.on_estimate(est([51.0, 2.0, 3.0], {"state:future": 2}))  # a forged one
+    assert core.conflicts == 1 and core.rejected["estimate:conflict"] == 1
+    assert [e["kind"] for e in core.events].count("conflicting_estimates") == 1
+    core.done = True
+    assert core.completeness()["complete"] is False
+    core.sink.close()
