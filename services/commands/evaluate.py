@@ -23,7 +23,19 @@ import traceback
 from pathlib import Path
 
 HELP = "run estimators in-process over simulated seeds or a dataset; write report, figures, TUM, .rrd"
-DESCRIPTION = __doc__
+DESCRIPTION = HELP + """.
+
+Runs each algorithm over each seed in one process with the same epoch protocol as the swarm (an
+in-memory bus), so a seed gives the numbers `swarmnav launch` gives. Writes report.json, report.md,
+figures/*.png, traj/<algo>/uav<id>.tum (for evo) and evaluate.rrd (every algorithm side by side).
+Algorithms: atvfg (the paper's method, ours), fg (plain distributed factor graph), fkf (federated
+Kalman filter), ins (each UAV alone), central (oracle: one joint graph, faulty links removed).
+
+examples:
+  swarmnav evaluate --config configs/smoke.toml                               # all five, the config's seed
+  swarmnav evaluate --config configs/paper.toml --algos atvfg,fg,fkf,ins,central --seeds 1-3
+  swarmnav evaluate --dataset runs/miluv-dataset --algos atvfg,fg,central --seeds 0
+"""
 ALL_ALGOS = "atvfg,fg,fkf,ins,central"
 
 for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
