@@ -306,21 +306,30 @@ class MonitorCore:
         np.savez_compressed(self.out / "estimates.npz", t=r.t, uavs=r.uavs, pos=r.pos, vel=r.vel, pos_cov=r.pos_cov,
                             rounds=r.rounds, step_ms=r.step_ms, wait_ms=w, bytes_out=b, peers=self.peers, inc=self.inc)
         (self.out / "report.md").write_text(render_markdown(rep))
-        from services.figures import write_figures
-
-        try:  # the same figures/*.png as `swarmnav evaluate`
-            write_figures(self.out, {a: r}, tr, {a: [r]}, [tr], self.meta.gnss_outages, self.ds, self.meta, dl)
-        except Exception as e:  # a figure must never cost the report
-            if self.log is not None:
-                self.log.warning("figures not written: %s", e)
+        self._figure_args = ({a: r}, tr, {a: [r]}, [tr], self.meta.gnss_outages, self.ds, self.meta, dl)
         return rep
 
-    def finish(self) -> dict:
-        """Close every epoch in the recording, write the report, close the recording."""
+    def write_figures(self) -> None:
+        """The same figures/*.png as `swarmnav evaluate` (after the report and the recording: the
+        slowest and least essential output)."""
+        from services.figures import write_figures
+
+        try:
+            write_figures(self.out, *self._figure_args)
+        except Exception as e:  # a figure must never cost the run its report
+            if self.log is not None:
+                self.log.warning("figures not written: %s", e)
+
+    def finish(self, figures: bool = True) -> dict:
+        """Close every epoch in the recording, write the report, close the recording, then (unless
+        stopping on a signal, when every second counts) the figures."""
         try:
             self.close_epochs(self.K, force=True)
-            return self.report()
+            rep = self.report()
         finally:
             self.sink.close()
             if self.journal is not None:
                 self.journal.close()
+        if figures:
+            self.write_figures()
+        return rep

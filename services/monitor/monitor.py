@@ -232,7 +232,7 @@ class Monitor:
         return 0
 
     def finish(self):
-        rep = self.core.finish()
+        rep = self.core.finish(figures=not self.inbox.stop.is_set() or self.core.done)
         self.log.info("report written: %s 3-D pos RMSE %s; complete %s (%s of %s estimates)", self.a.algo,
                       rep["algorithms"][self.a.algo]["pos_rmse_m"]["3d"], rep.get("complete"),
                       rep.get("estimates_received"), rep.get("estimates_expected"))
