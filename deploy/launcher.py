@@ -116,6 +116,15 @@ def stop_all(procs: list[Proc], grace: float = STOP_GRACE_S) -> None:
             p.p.wait()
 
 
+def _last_error(log: Path) -> str:
+    """``: <the last ERROR line of a service's log>`` (its own account of why it stopped), or ''."""
+    try:
+        lines = [ln for ln in log.read_text(errors="replace").splitlines() if " ERROR " in ln]
+    except OSError:
+        return ""
+    return f" — it said: {lines[-1].split(' ERROR ', 1)[1][:200]}" if lines else ""
+
+
 def describe_exit(rc: int | None) -> str:
     if rc is None:
         return "still running"
@@ -208,7 +217,7 @@ def launch(spec: LaunchSpec) -> LaunchResult:
                         p = dead[0]
                         status = 1
                         reason = (f"the {p.name.replace('_', '-')} died ({describe_exit(p.p.returncode)}) at epoch "
-                                  f"{last_k} before the run was done: stopping the run (see {p.log})")
+                                  f"{last_k} before the run was done: stopping the run{_last_error(p.log)} (see {p.log})")
                         break
                     for u, n in nodes.items():
                         if n.p.poll() is not None and not n.expected_kill and not getattr(n, "_reported", False):

@@ -223,7 +223,13 @@ class SensorSim:
         self.log.warning("epoch %d: lost the router/monitor (bus outage): holding the clock", k)
         while not self.connected():
             if time.monotonic() - t0 > self.a.outage_timeout:
-                raise OutageError(f"the bus stayed down for {self.a.outage_timeout:.0f} s at epoch {k}")
+                try:
+                    up = bool(list(self.s.info.routers_zid()))
+                except Exception:  # session closing
+                    up = False
+                what = "the monitor has been unreachable (frozen or gone)" if up else "no router has been reachable"
+                raise OutageError(f"{what} for {self.a.outage_timeout:.0f} s at epoch {k}: stopping rather than "
+                                  "playing epochs nobody records")
             self.pump(0.1)
         self.wait_until(lambda: before <= self.alive_uav, self.a.rejoin_grace, f"UAVs {sorted(before)} to reconnect")
         self.log.warning("epoch %d: bus back after %.1f s; live UAVs %s", k, time.monotonic() - t0, sorted(self.alive_uav))
