@@ -277,3 +277,24 @@ def test_standalone_router_restart_loses_nothing(smoke, tmp_path):
     rep = json.loads((out / "report.json").read_text())
     assert rep["complete"] is True and rep["estimates_received"] == 300, rep
     assert [e["kind"] for e in rep["events"]][:2] == ["bus_outage", "bus_restored"], rep["events"]
+
+
+def test_frozen_monitor_in_real_time_loses_the_outage_and_says_so(smoke, tmp_path):
+    """--rate 2, the monitor SIGSTOPped 6 s: the sensor-sim holds (nothing would record the epochs),
+    real time goes on, so the epochs of the outage are lost — recorded as lost, the nodes
+    re-bootstrap after the jump, the run is incomplete and exits non-zero; no process crashes."""
+    run = Run(tmp_path / "run", "--rate", "2", dataset=smoke)
+    clk = run.clock()
+    clk.wait(8)
+    mon = run.children()["monitor"]
+    mon.send_signal(signal.SIGSTOP)
+    time.sleep(6.0)
+    mon.send_signal(signal.SIGCONT)
+    clk.close()
+    rc = run.wait(120)
+    rep = run.report()
+    kinds = [e["kind"] for e in rep["events"]]
+    assert "bus_outage" in kinds and "epochs_lost" in kinds and "rebootstrap" in kinds, kinds
+    assert rc != 0 and rep["complete"] is False and rep["epochs_lost"], rep
+    for log in (run.out / "logs").glob("*.log"):
+        assert "Traceback" not in log.read_text(), log.name

@@ -333,7 +333,7 @@ class SensorSim:
                 if not self.connected():  # real time goes on: the epochs of the outage are lost, and said so
                     t_out = time.monotonic()
                     self.ride_out_outage(k)
-                    now_k = min(self.K, max(k, int((time.monotonic() - t_wall0) * a.rate / self.meta.epoch_dt) + 1))
+                    now_k = min(self.K, max(k, int((time.monotonic() - t_wall0) * a.rate / self.meta.epoch_dt_s) + 1))
                     if now_k > k:
                         self.lost.append((k, now_k - 1))
                         self.log.warning("epochs %d-%d lost in a %.1f s bus outage (real-time mode)", k, now_k - 1,
