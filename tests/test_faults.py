@@ -298,3 +298,45 @@ def test_frozen_monitor_in_real_time_loses_the_outage_and_says_so(smoke, tmp_pat
     assert rc != 0 and rep["complete"] is False and rep["epochs_lost"], rep
     for log in (run.out / "logs").glob("*.log"):
         assert "Traceback" not in log.read_text(), log.name
+
+
+def test_standalone_services_stop_by_themselves_when_the_sensor_sim_dies(smoke, tmp_path):
+    """No launcher to stop them (multi-host): the nodes and the monitor notice the sensor-sim is
+    gone while the router is up, stop with status 4, and the monitor writes an incomplete report."""
+    import zenoh
+
+    from deploy.zconf import client_config, free_port
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    logs = tmp_path / "logs"
+    logs.mkdir()
+
+    def spawn(name, argv):
+        return subprocess.Popen(argv, cwd=REPO, env=ENV, stdout=open(logs / f"{name}.log", "w"), stderr=subprocess.STDOUT)
+
+    router = spawn("router", [sys.executable, "-m", "deploy.router", "--listen", ep])
+    time.sleep(1.5)
+    run, out = "t" + uuid.uuid4().hex[:8], tmp_path / "run"
+    out.mkdir()
+    common = ["--router", ep, "--run", run, "--sim-lost-timeout", "4"]
+    procs = {"monitor": spawn("monitor", [sys.executable, "-m", "services.monitor", *common, "--dataset", str(smoke),
+                                          "--seed", "1", "--out", str(out)])}
+    for u in range(1, 6):
+        procs[f"uav{u}"] = spawn(f"uav{u}", [sys.executable, "-m", "services.uav_node", *common, "--uav", str(u)])
+    sim = spawn("sim", [sys.executable, "-m", "services.sensor_sim", "--router", ep, "--run", run, "--dataset", str(smoke),
+                        "--seed", "1", "--rate", "4"])
+    try:
+        clk = Clock(zenoh.open(client_config(ep)), run)
+        clk.wait(10)
+        sim.kill()
+        end = time.monotonic() + 60
+        while time.monotonic() < end and any(p.poll() is None for p in procs.values()):
+            time.sleep(0.2)
+        clk.close()
+        assert {n: p.poll() for n, p in procs.items()} == {n: 4 for n in procs}
+    finally:
+        for p in [*procs.values(), sim, router]:
+            if p.poll() is None:
+                p.kill()
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["complete"] is False and "sensor_sim_lost" in [e["kind"] for e in rep["events"]]

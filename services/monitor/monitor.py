@@ -49,6 +49,8 @@ def parse_args(argv=None):
     p.add_argument("--security-mode", default="off", choices=["mtls", "usrpwd", "off"], help="for report.json")
     p.add_argument("--acl", default="off", choices=["on", "off"], help="for report.json")
     p.add_argument("--envelope-m", type=float, default=M.ENVELOPE_M, help="reject estimates farther than this (m, any axis)")
+    p.add_argument("--sim-lost-timeout", type=float, default=SIM_LOST_S,
+                   help="write what there is and exit (status 4) when the sensor-sim has been gone this long while a router is up (s)")
     p.add_argument("--zenoh-config", default=None)
     return p.parse_args(argv)
 
@@ -225,9 +227,9 @@ class Monitor:
             if self.core.done and time.monotonic() - last > 0.3:
                 self.recover(self.core.K)
                 return 0
-            if self.sim_lost_at is not None and self.routers() and time.monotonic() - self.sim_lost_at > SIM_LOST_S:
+            if self.sim_lost_at is not None and self.routers() and time.monotonic() - self.sim_lost_at > self.a.sim_lost_timeout:
                 self.core.event("sensor_sim_lost", 0)
-                self.log.error("the sensor-sim has been gone for %.0f s: writing what there is", SIM_LOST_S)
+                self.log.error("the sensor-sim has been gone for %.0f s: writing what there is", self.a.sim_lost_timeout)
                 return 4
         return 0
 

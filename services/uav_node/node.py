@@ -302,6 +302,21 @@ class Node:
             self.offline_since = now
         return False
 
+    def abandoned(self) -> str | None:
+        """Why this node should give up, if it should: the sensor-sim gone for --sim-lost-timeout
+        while a router is reachable (the run is over without its clock), or no router for
+        --outage-timeout."""
+        now = time.monotonic()
+        try:
+            up = bool(list(self.s.info.routers_zid()))
+        except Exception:  # session closing
+            up = False
+        if up and self.sim_lost_at is not None and now - self.sim_lost_at > self.a.sim_lost_timeout:
+            return f"the sensor-sim has been gone for {now - self.sim_lost_at:.0f} s"
+        if not up and self.offline_since is not None and now - self.offline_since > self.a.outage_timeout:
+            return f"no router for {now - self.offline_since:.0f} s"
+        return None
+
     def peer_gone(self, u: int) -> bool:
         """Peer u's token went away while this node was connected (a genuine death or freeze), not
         in a bus outage: waited for again for RECONNECT_GRACE_S after connectivity returns."""
@@ -336,8 +351,8 @@ class Node:
                 break
             waited = time.monotonic() - t0
             offline = not self.connected()
-            if offline and time.monotonic() - self.offline_since > self.a.outage_timeout:
-                raise OutageError(f"no router/sensor-sim for {self.a.outage_timeout:.0f} s")
+            if offline and (why := self.abandoned()):
+                raise OutageError(why)
             if waited > self.peer_timeout * 10 and not offline:
                 self.log.warning("epoch %d round %d: giving up on live peers %s after %.1f s", k, r, missing, waited)
                 break
@@ -468,11 +483,8 @@ class Node:
                 continue
             if self.done:
                 break
-            if self.sim_lost_at is not None and self.connected() and time.monotonic() - self.sim_lost_at > self.a.sim_lost_timeout:
-                self.log.error("the sensor-sim has been gone for %.0f s: stopping", self.a.sim_lost_timeout)
-                return 4
-            if self.offline_since is not None and not self.connected() and time.monotonic() - self.offline_since > self.a.outage_timeout:
-                self.log.error("no router for %.0f s: stopping", self.a.outage_timeout)
+            if not self.connected() and (why := self.abandoned()):
+                self.log.error("%s: stopping", why)
                 return 4
             self.pump(0.5)
             if self.sim_lost_at is not None or self.offline_since is not None:
