@@ -102,40 +102,31 @@ def _write_private(path: Path, text: str) -> None:
     os.chmod(path, 0o600)
 
 
-def client_config_dict(endpoint: str, ca_pem: bytes, cert_pem: bytes, key_pem: bytes) -> dict:
-    """A complete client config of one principal (see deploy/zconf.py for the shared base)."""
-    from deploy.zconf import LEASE_MS, RETRY
+def _tls_config(mode: str, side: str, ca_pem: bytes, cert_pem: bytes, key_pem: bytes, **sections) -> dict:
+    """The shared shape of both configs (see deploy/zconf.py for the same base as code): mutual TLS
+    with the run's CA and this party's certificate/key inline; ``side`` is "connect" or "listen"."""
+    from deploy.zconf import LEASE_MS
 
-    return {
-        "mode": "client",
-        "connect": {"endpoints": [endpoint], "timeout_ms": -1, "retry": RETRY},
-        "listen": {"endpoints": []},
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": True}},
-        "transport": {"link": {"tx": {"lease": LEASE_MS}, "tls": {
-            "root_ca_certificate_base64": _b64(ca_pem),
-            "connect_certificate_base64": _b64(cert_pem),
-            "connect_private_key_base64": _b64(key_pem),
-            "enable_mtls": True,
-            "verify_name_on_connect": True,
-        }}},
-    }
+    tls = {"root_ca_certificate_base64": _b64(ca_pem), f"{side}_certificate_base64": _b64(cert_pem),
+           f"{side}_private_key_base64": _b64(key_pem), "enable_mtls": True}
+    if side == "connect":
+        tls["verify_name_on_connect"] = True
+    return {"mode": mode, **sections, "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": True}},
+            "transport": {"link": {"tx": {"lease": LEASE_MS}, "tls": tls}}}
+
+
+def client_config_dict(endpoint: str, ca_pem: bytes, cert_pem: bytes, key_pem: bytes) -> dict:
+    """A complete client config of one principal."""
+    from deploy.zconf import RETRY
+
+    return _tls_config("client", "connect", ca_pem, cert_pem, key_pem,
+                       connect={"endpoints": [endpoint], "timeout_ms": -1, "retry": RETRY}, listen={"endpoints": []})
 
 
 def router_config_dict(listen: list[str], ca_pem: bytes, cert_pem: bytes, key_pem: bytes, access: dict | None) -> dict:
-    from deploy.zconf import LEASE_MS
-
-    d = {
-        "mode": "router",
-        "listen": {"endpoints": list(listen)},
-        "connect": {"endpoints": []},
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": True}},
-        "transport": {"link": {"tx": {"lease": LEASE_MS}, "tls": {
-            "root_ca_certificate_base64": _b64(ca_pem),
-            "listen_certificate_base64": _b64(cert_pem),
-            "listen_private_key_base64": _b64(key_pem),
-            "enable_mtls": True,
-        }}},
-    }
+    """The router's config: TLS listen endpoints, mutual TLS required, the ACL."""
+    d = _tls_config("router", "listen", ca_pem, cert_pem, key_pem, listen={"endpoints": list(listen)},
+                    connect={"endpoints": []})
     if access is not None:
         d["access_control"] = access
     return d

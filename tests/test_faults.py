@@ -6,6 +6,7 @@ monitor identity (secured runs) or as a plain client (the standalone router), in
 an epoch and then checks the processes, the exit status and report.json.
 """
 
+import functools
 import json
 import os
 import signal
@@ -95,6 +96,19 @@ class Run:
         run = cmd[cmd.index("--run") + 1]
         return Clock(zenoh.open(zenoh.Config.from_file(str(self.out / "security" / "monitor.json5"))), run)
 
+    def freeze(self, name: str, at_epoch: int, seconds: float) -> int:
+        """SIGSTOP the service ``name`` once the clock reaches ``at_epoch``, SIGCONT it ``seconds``
+        later; returns the epoch the clock had reached by then."""
+        clk = self.clock()
+        clk.wait(at_epoch)
+        p = self.children()[name]
+        p.send_signal(signal.SIGSTOP)
+        time.sleep(seconds)
+        p.send_signal(signal.SIGCONT)
+        k = clk.k
+        clk.close()
+        return k
+
     def wait(self, timeout=180):
         try:
             return self.p.wait(timeout)
@@ -108,6 +122,11 @@ class Run:
 
     def report(self):
         return json.loads((self.out / "report.json").read_text())
+
+
+def _spawn(logs: Path, name: str, argv: list[str]) -> subprocess.Popen:
+    """A service started by hand (as on another host), its output in logs/<name>.log."""
+    return subprocess.Popen(argv, cwd=REPO, env=ENV, stdout=open(logs / f"{name}.log", "w"), stderr=subprocess.STDOUT)
 
 
 def _all_gone(procs, t0, limit):
@@ -202,14 +221,7 @@ def test_frozen_node_rebootstraps_and_run_says_it_is_incomplete(smoke, tmp_path)
     re-bootstrap (never publishing its stale state as current), its error back to normal, the swarm
     not poisoned, and the report must call the run incomplete and name the missed estimates."""
     run = Run(tmp_path / "run", "--rate", "2", dataset=smoke)
-    clk = run.clock()
-    clk.wait(10)
-    uav4 = run.children()["uav4"]
-    uav4.send_signal(signal.SIGSTOP)
-    time.sleep(8.0)
-    uav4.send_signal(signal.SIGCONT)
-    k_cont = clk.k
-    clk.close()
+    k_cont = run.freeze("uav4", 10, 8.0)
     rc = run.wait(120)
     rep = run.report()
     kinds = [(e["kind"], e["uav"]) for e in rep["events"]]
@@ -244,9 +256,7 @@ def test_standalone_router_restart_loses_nothing(smoke, tmp_path):
     logs = tmp_path / "logs"
     logs.mkdir()
 
-    def spawn(name, argv):
-        return subprocess.Popen(argv, cwd=REPO, env=ENV, stdout=open(logs / f"{name}.log", "w"), stderr=subprocess.STDOUT)
-
+    spawn = functools.partial(_spawn, logs)
     r1 = spawn("router1", router)
     time.sleep(1.5)
     run = "t" + uuid.uuid4().hex[:8]
@@ -284,13 +294,7 @@ def test_frozen_monitor_in_real_time_loses_the_outage_and_says_so(smoke, tmp_pat
     real time goes on, so the epochs of the outage are lost — recorded as lost, the nodes
     re-bootstrap after the jump, the run is incomplete and exits non-zero; no process crashes."""
     run = Run(tmp_path / "run", "--rate", "2", dataset=smoke)
-    clk = run.clock()
-    clk.wait(8)
-    mon = run.children()["monitor"]
-    mon.send_signal(signal.SIGSTOP)
-    time.sleep(6.0)
-    mon.send_signal(signal.SIGCONT)
-    clk.close()
+    run.freeze("monitor", 8, 6.0)
     rc = run.wait(120)
     rep = run.report()
     kinds = [e["kind"] for e in rep["events"]]
@@ -311,9 +315,7 @@ def test_standalone_services_stop_by_themselves_when_the_sensor_sim_dies(smoke, 
     logs = tmp_path / "logs"
     logs.mkdir()
 
-    def spawn(name, argv):
-        return subprocess.Popen(argv, cwd=REPO, env=ENV, stdout=open(logs / f"{name}.log", "w"), stderr=subprocess.STDOUT)
-
+    spawn = functools.partial(_spawn, logs)
     router = spawn("router", [sys.executable, "-m", "deploy.router", "--listen", ep])
     time.sleep(1.5)
     run, out = "t" + uuid.uuid4().hex[:8], tmp_path / "run"
