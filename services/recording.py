@@ -37,6 +37,7 @@ TRAIL_S = 30.0
 ALGO_COLORS: dict[str, tuple[int, int, int]] = {
     "truth": (230, 230, 230),
     "atvfg": (31, 119, 180),
+    "atvfg_paper": (23, 190, 207),
     "fg": (255, 127, 14),
     "fkf": (148, 103, 189),
     "ins": (140, 86, 75),

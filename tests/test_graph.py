@@ -599,3 +599,18 @@ def test_relink_window_too_short_is_an_error(noiseless):
     u = ds.meta.uav_ids()[0]
     with pytest.raises(ValueError, match="relink_s"):
         FgEstimator(u, ds.meta, _settings(sc, relink_s=0.2 * ds.meta.epoch_dt_s), inits[u])
+
+
+
+def test_atvfg_paper_is_the_published_method(noiseless):
+    """``atvfg_paper`` runs the paper's settings whatever [estimation.graph] says; atvfg does not."""
+    from swarmnav.estimators import registry
+
+    sc, ds = noiseless
+    s = _settings(sc, graph={"azel_weight": "full", "h1_weight_cap": True, "delta_h_ceil_factor": 10.0})
+    init = initial_states(ds, 3)[1]
+    paper = registry.estimator_class("atvfg_paper")(1, ds.meta, s, init)
+    ours = AtvfgEstimator(1, ds.meta, s, init)
+    assert registry.kind("atvfg_paper") == "node" and paper.detect
+    assert (paper.azel_weight, paper.cap_h1, paper.ceil_factor, paper.floor_factor) == ("range", False, None, 1.0)
+    assert (ours.azel_weight, ours.cap_h1, ours.ceil_factor) == ("full", True, 10.0)

@@ -28,11 +28,12 @@ DESCRIPTION = HELP + """.
 Runs each algorithm over each seed in one process with the same epoch protocol as the swarm (an
 in-memory bus), so a seed gives the numbers `swarmnav launch` gives. Writes report.json, report.md,
 figures/*.png, traj/<algo>/uav<id>.tum (for evo) and evaluate.rrd (every algorithm side by side).
-Algorithms: atvfg (the paper's method, ours), fg (plain distributed factor graph), fkf (federated
-Kalman filter), ins (each UAV alone), central (oracle: one joint graph, faulty links removed).
+Algorithms: atvfg (the paper's method as we run it), atvfg_paper (the paper's method exactly as
+published), fg (plain distributed factor graph), fkf (federated Kalman filter), ins (each UAV alone),
+central (oracle: one joint graph, faulty links removed). The default runs the first five but atvfg_paper.
 
 examples:
-  swarmnav evaluate --config configs/smoke.toml                               # all five, the config's seed
+  swarmnav evaluate --config configs/smoke.toml                               # the default five, the config's seed
   swarmnav evaluate --config configs/paper.toml --algos atvfg,fg,fkf,ins,central --seeds 1-3
   swarmnav evaluate --dataset runs/miluv-dataset --algos atvfg,fg,central --seeds 0
 """

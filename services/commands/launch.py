@@ -56,7 +56,7 @@ def add_arguments(p):
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--config", help="scenario TOML (simulated once for the run)")
     src.add_argument("--dataset", help="dataset directory to replay")
-    p.add_argument("--algo", default="atvfg", help="estimator hosted by every node: atvfg (default), fg, fkf or ins")
+    p.add_argument("--algo", default="atvfg", help="estimator hosted by every node: atvfg (default), atvfg_paper, fg, fkf or ins")
     p.add_argument("--seed", type=int, default=None, help="run seed (default: the config's)")
     p.add_argument("--kill", type=_fault, action="append", default=[], metavar="ID@T", help="SIGKILL UAV ID's process at sim time T")
     p.add_argument("--restart", type=_fault, action="append", default=[], metavar="ID@T", help="restart UAV ID's process at sim time T")

@@ -14,7 +14,7 @@ import math
 SCHEMA = "swarmnav.report/1"
 ENU3 = ("e", "n", "u", "3d")
 IMPROVEMENT_PAIRS = (("atvfg", "fg"), ("atvfg", "fkf"), ("atvfg", "ins"), ("atvfg", "central"))
-ALGO_ORDER = ("fkf", "fg", "atvfg", "ins", "central")  # the paper's Table 2 order first
+ALGO_ORDER = ("fkf", "fg", "atvfg", "atvfg_paper", "ins", "central")  # the paper's Table 2 order first
 
 
 def _clean(x):
@@ -254,12 +254,12 @@ def render_markdown(rep: dict) -> str:
 
 def summary_table(rep: dict) -> str:
     """A compact fixed-width table for stdout."""
-    hdr = f"{'algo':<8} {'pos3d[m]':>9} {'vel3d[m/s]':>10} {'uav1[m]':>8} {'NEES':>7} {'p50[ms]':>8} {'p99[ms]':>8}  detection P/R/FA"
+    hdr = f"{'algo':<11} {'pos3d[m]':>9} {'vel3d[m/s]':>10} {'uav1[m]':>8} {'NEES':>7} {'p50[ms]':>8} {'p99[ms]':>8}  detection P/R/FA"
     rows = [hdr, "-" * len(hdr)]
     for name, a in rep["algorithms"].items():
         det = a.get("detection")
         dtxt = "" if not det else f"{_pct(det['precision'])} / {_pct(det['recall'])} / {_pct(det['false_alarm_rate'])}"
-        rows.append(f"{name:<8} {_f(a['pos_rmse_m']['3d']):>9} {_f(a['vel_rmse_mps']['3d'], 3):>10} "
+        rows.append(f"{name:<11} {_f(a['pos_rmse_m']['3d']):>9} {_f(a['vel_rmse_mps']['3d'], 3):>10} "
                     f"{_f(a['uav1_pos_rmse_m']['3d']):>8} {_f(a['nees']):>7} {_f(a['step_ms']['p50']):>8} "
                     f"{_f(a['step_ms']['p99']):>8}  {dtxt}")
     s = rep.get("detection_single_threshold")

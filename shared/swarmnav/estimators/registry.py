@@ -25,6 +25,7 @@ from ..errors import ConfigError, SwarmnavError
 # "swarm" = SwarmEstimator(meta, settings, inits)
 _REGISTRY: dict[str, tuple[str, str, str]] = {
     "atvfg": ("swarmnav.estimators.graph", "AtvfgEstimator", "node"),
+    "atvfg_paper": ("swarmnav.estimators.graph", "AtvfgPaperEstimator", "node"),
     "fg": ("swarmnav.estimators.graph", "FgEstimator", "node"),
     "fkf": ("swarmnav.estimators.fkf", "FkfEstimator", "node"),
     "ins": ("swarmnav.estimators.graph", "InsEstimator", "node"),
