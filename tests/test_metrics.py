@@ -198,3 +198,93 @@ def test_report_contract_and_improvement_keys():
     del bad["algorithms"]["fg"]["nees"]
     errs = validate_report(bad)
     assert any("thresholds" in e for e in errs) and any("fg.nees" in e for e in errs)
+
+
+# -- consistency (NEES band) and Monte-Carlo statistics ------------------------------------------
+
+
+def _synthetic(scale, S=4, K=200, N=5, seed=0):
+    """Errors drawn from a known covariance P; the estimator reports scale * P."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(S, K, N, 3, 3))
+    P = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(3)  # random full covariances
+    e = (np.linalg.cholesky(P) @ rng.normal(size=(S, K, N, 3, 1)))[..., 0]
+    return e, scale * P
+
+
+def test_chi2_band_matches_the_contract():
+    lo, hi = M.chi2_band(3)
+    assert lo == pytest.approx(0.216, abs=5e-4) and hi == pytest.approx(9.35, abs=5e-3)
+    assert (lo, hi) == pytest.approx(M.CHI2_3_BAND95)
+
+
+def test_nees_consistency_passes_a_consistent_covariance():
+    c = M.nees_consistency(*_synthetic(1.0))
+    assert c["nees_n"] == 4 * 200 * 5
+    lo, hi = c["nees_mean_bounds"]
+    assert lo < 3.0 < hi and lo < c["nees_mean"] < hi
+    assert c["nees_verdict"] == "consistent"
+    assert c["nees_in_band_share"] == pytest.approx(0.95, abs=0.015)
+    assert c["nees_below_band_frac"] == pytest.approx(0.025, abs=0.01)
+    assert c["nees_above_band_frac"] == pytest.approx(0.025, abs=0.01)
+    assert c["nees_epochs_in_bounds_frac"] > 0.9
+
+
+@pytest.mark.parametrize("scale, verdict, side", [(0.25, "overconfident", "nees_above_band_frac"),
+                                                  (4.0, "conservative", "nees_below_band_frac")])
+def test_nees_consistency_is_two_sided(scale, verdict, side):
+    """An overconfident (P/4) and an over-conservative (4P) covariance both fail: the mean outside
+    its bounds on the right side, the in-band share below 90 %, misses on that side of the band."""
+    c = M.nees_consistency(*_synthetic(scale))
+    lo, hi = c["nees_mean_bounds"]
+    assert not lo <= c["nees_mean"] <= hi
+    assert c["nees_mean"] == pytest.approx(3.0 / scale, rel=0.1)
+    assert c["nees_verdict"] == verdict
+    assert c["nees_in_band_share"] < 0.90
+    assert c[side] > 0.1
+    assert c["nees_epochs_in_bounds_frac"] < 0.5
+
+
+def test_nees_consistency_skips_missing_and_empty():
+    e, P = _synthetic(1.0, S=1, K=3, N=2)
+    e[0, 1, 0] = np.nan
+    P[0, 2, 1] = 0.0  # not positive definite
+    c = M.nees_consistency(e, P)
+    assert c["nees_n"] == 4
+    empty = M.nees_consistency(np.full((1, 2, 1, 3), np.nan), np.full((1, 2, 1, 3, 3), np.nan))
+    assert empty["nees_mean"] is None and empty["nees_in_band_share"] is None and empty["nees_n"] == 0
+
+
+def test_algorithm_metrics_carries_consistency_and_per_seed_rmse():
+    e, P = _synthetic(1.0, S=2, K=20, N=2)
+    m = M.algorithm_metrics([1, 2], np.arange(20.0), list(e), list(e), list(P), [np.ones((20, 2))] * 2)
+    assert m["nees_mean"] == pytest.approx(m["nees"])
+    assert 0 < m["nees_in_band_share"] <= 1
+    assert m["per_seed_pos_rmse_3d_m"] == [pytest.approx(M.rmse(e[0])["3d"]), pytest.approx(M.rmse(e[1])["3d"])]
+
+
+def test_mean_ci_student_t():
+    x = [1.0, 2.0, 3.0, 4.0, None]
+    r = M.mean_ci(x)
+    assert r["n"] == 4 and r["mean"] == pytest.approx(2.5)
+    h = 3.182446305284263 * np.std([1, 2, 3, 4], ddof=1) / 2  # t(0.975, 3)
+    assert r["ci95"] == pytest.approx([2.5 - h, 2.5 + h])
+    one = M.mean_ci([0.7])
+    assert one["mean"] == 0.7 and one["ci95"] is None and one["std"] is None
+
+
+def test_monte_carlo_paired_differences():
+    seeds = [1, 2, 3, 4]
+    per_seed = {"atvfg": [1.0, 1.1, 0.9, None], "fg": [2.0, 2.3, 1.8, 2.0], "central": [0.9, 1.0, 0.9, 1.0]}
+    mc = M.monte_carlo(seeds, per_seed)
+    assert mc["n_seeds"] == 4 and mc["seeds"] == seeds
+    a = mc["per_algorithm"]["atvfg"]
+    assert a["n"] == 3 and a["mean"] == pytest.approx(1.0) and a["per_seed"]["4"] is None
+    d = mc["paired"]["atvfg-fg"]
+    # per seed differences -1.0, -1.2, -0.9 (seed 4 has no atvfg): paired, not the difference of means
+    assert d["n"] == 3 and d["mean"] == pytest.approx(-31 / 30)
+    assert d["ci95"][1] < 0 and d["p_value"] < 0.01 and d["a_better_seeds"] == 3
+    assert d["ratio"]["mean"] == pytest.approx(np.mean([0.5, 1.1 / 2.3, 0.5]))
+    assert "atvfg-fkf" not in mc["paired"]  # fkf did not run
+    c = mc["paired"]["atvfg-central"]
+    assert c["ci95"][0] < c["mean"] < c["ci95"][1] and c["p_value"] > 0.05

@@ -75,34 +75,172 @@ def outage_masks(t: np.ndarray, uavs, windows) -> tuple[np.ndarray, np.ndarray] 
     return out, nominal
 
 
-def nees(err: np.ndarray, cov: np.ndarray) -> tuple[float | None, int]:
-    """Mean 3-D position NEES over all samples; returns (mean, n_skipped)."""
+def nees_samples(err: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Per-sample 3-D position NEES e^T P^-1 e of ``err`` (..., 3) with ``cov`` (..., 3, 3).
+
+    Returns (values (M,), their sample indices into the flattened leading shape, n_skipped): samples
+    with NaN error or covariance, or a covariance that is not positive definite, are skipped."""
     e = np.asarray(err, float).reshape(-1, 3)
     P = np.asarray(cov, float).reshape(-1, 3, 3)
     ok = np.all(np.isfinite(e), axis=1) & np.all(np.isfinite(P), axis=(1, 2))
-    vals = []
+    idx = np.flatnonzero(ok)
     skipped = int((~ok).sum())
-    if ok.any():
-        Pk = 0.5 * (P[ok] + np.transpose(P[ok], (0, 2, 1)))
-        ek = e[ok]
-        try:
-            L = np.linalg.cholesky(Pk)
-            z = np.linalg.solve(L, ek[..., None])[..., 0]
-            vals = np.sum(z**2, axis=1)
-        except np.linalg.LinAlgError:  # some not positive definite: fall back one by one
-            v = []
-            for Pi, ei in zip(Pk, ek):
-                try:
-                    Li = np.linalg.cholesky(Pi)
-                except np.linalg.LinAlgError:
-                    skipped += 1
-                    continue
-                zi = np.linalg.solve(Li, ei)
-                v.append(float(zi @ zi))
-            vals = np.array(v)
+    if not len(idx):
+        return np.zeros(0), idx, skipped
+    Pk = 0.5 * (P[idx] + np.transpose(P[idx], (0, 2, 1)))
+    ek = e[idx]
+    try:
+        L = np.linalg.cholesky(Pk)
+        z = np.linalg.solve(L, ek[..., None])[..., 0]
+        return np.sum(z**2, axis=1), idx, skipped
+    except np.linalg.LinAlgError:  # some not positive definite: fall back one by one
+        v, keep = [], []
+        for i, Pi, ei in zip(idx, Pk, ek):
+            try:
+                Li = np.linalg.cholesky(Pi)
+            except np.linalg.LinAlgError:
+                skipped += 1
+                continue
+            zi = np.linalg.solve(Li, ei)
+            v.append(float(zi @ zi))
+            keep.append(i)
+        return np.array(v), np.array(keep, int), skipped
+
+
+def nees(err: np.ndarray, cov: np.ndarray) -> tuple[float | None, int]:
+    """Mean 3-D position NEES over all samples; returns (mean, n_skipped)."""
+    vals, _, skipped = nees_samples(err, cov)
     if len(vals) == 0:
         return None, skipped
     return float(np.mean(vals)), skipped
+
+
+# two-sided 95 % band of chi2(3) (scipy.stats.chi2.ppf([0.025, 0.975], 3)), used when scipy is absent
+CHI2_3_BAND95 = (0.2157952826238981, 9.348403604496148)
+
+
+def chi2_band(dof: int, p: float = 0.95) -> tuple[float, float]:
+    """Two-sided ``p`` interval of a chi-square with ``dof`` degrees of freedom."""
+    a = (1.0 - p) / 2.0
+    try:
+        from scipy.stats import chi2
+    except ImportError:  # pragma: no cover - scipy is a dependency; constants / Wilson-Hilferty at 95 %
+        if abs(p - 0.95) > 1e-12:
+            raise
+        if dof == 3:
+            return CHI2_3_BAND95
+        f = lambda z: dof * (1 - 2 / (9 * dof) + z * np.sqrt(2 / (9 * dof))) ** 3  # noqa: E731
+        return float(f(-1.959963984540054)), float(f(1.959963984540054))
+    return float(chi2.ppf(a, dof)), float(chi2.ppf(1 - a, dof))
+
+
+def nees_consistency(err: np.ndarray, cov: np.ndarray, p: float = 0.95) -> dict:
+    """Consistency of the 3-D position covariance, navlie / Bar-Shalom style.
+
+    ``err`` (S, K, N, 3) and ``cov`` (S, K, N, 3, 3) (seeds, epochs, UAVs; fewer leading axes are
+    read as a single seed / epoch). For a consistent estimator each NEES is chi2(3):
+
+    - ``nees_mean``: mean over every UAV-epoch of every seed (expected 3);
+    - ``nees_mean_bounds``: the two-sided ``p`` interval of that mean for M independent samples,
+      chi2(3M)/M — narrow for large M and optimistic, because errors are correlated in time;
+    - ``nees_in_band_share``: share of UAV-epochs whose NEES lies in the two-sided chi2(3) band
+      ``nees_band`` ([0.216, 9.35] at 95 %; expected 0.95); ``nees_below_band_frac`` (too small:
+      covariance over-conservative) and ``nees_above_band_frac`` (too large: overconfident);
+    - ``nees_epochs_in_bounds_frac``: the Monte-Carlo test per epoch: the NEES averaged over the
+      R = seeds × UAVs runs at each epoch against chi2(3R)/R (expected 0.95);
+    - ``nees_verdict``: the two-sided test of the mean: "overconfident" above ``nees_mean_bounds``,
+      "conservative" below, "consistent" inside.
+    """
+    e = np.asarray(err, float)
+    P = np.asarray(cov, float)
+    while e.ndim < 4:
+        e, P = e[None], P[None]
+    S, K, N = e.shape[:3]
+    vals, idx, skipped = nees_samples(e, P)
+    lo, hi = chi2_band(3, p)
+    out: dict = {"nees_mean": None, "nees_mean_bounds": None, "nees_in_band_share": None,
+                 "nees_band": [lo, hi], "nees_below_band_frac": None, "nees_above_band_frac": None,
+                 "nees_epochs_in_bounds_frac": None, "nees_n": int(len(vals)), "nees_verdict": None}
+    if not len(vals):
+        return out
+    M = len(vals)
+    mlo, mhi = chi2_band(3 * M, p)
+    inb = (vals >= lo) & (vals <= hi)
+    below, above = float(np.mean(vals < lo)), float(np.mean(vals > hi))
+    out.update(nees_mean=float(np.mean(vals)), nees_mean_bounds=[mlo / M, mhi / M],
+               nees_in_band_share=float(np.mean(inb)), nees_below_band_frac=below, nees_above_band_frac=above)
+    # per epoch: average over seeds x UAVs (the Monte-Carlo runs of that epoch)
+    grid = np.full(S * K * N, np.nan)
+    grid[idx] = vals
+    grid = grid.reshape(S, K, N).transpose(1, 0, 2).reshape(K, S * N)
+    cnt = np.sum(np.isfinite(grid), axis=1)
+    good = cnt > 0
+    if good.any():
+        avg = np.nansum(grid[good], axis=1) / cnt[good]
+        bounds = {int(c): chi2_band(3 * int(c), p) for c in np.unique(cnt[good])}
+        blo = np.array([bounds[int(c)][0] / c for c in cnt[good]])
+        bhi = np.array([bounds[int(c)][1] / c for c in cnt[good]])
+        out["nees_epochs_in_bounds_frac"] = float(np.mean((avg >= blo) & (avg <= bhi)))
+    m = out["nees_mean"]
+    out["nees_verdict"] = "overconfident" if m > mhi / M else "conservative" if m < mlo / M else "consistent"
+    return out
+
+
+def mean_ci(x, p: float = 0.95) -> dict:
+    """Mean of ``x`` (None/NaN dropped) with its two-sided ``p`` Student-t confidence interval.
+
+    {"n", "mean", "std" (sample, ddof 1), "ci95": [lo, hi]}; std and ci95 are None for n < 2."""
+    v = np.array([np.nan if a is None else float(a) for a in np.ravel(np.asarray(x, dtype=object))], float)
+    v = v[np.isfinite(v)]
+    n = len(v)
+    out: dict = {"n": int(n), "mean": float(np.mean(v)) if n else None, "std": None, "ci95": None}
+    if n >= 2:
+        from scipy.stats import t as student_t
+
+        sd = float(np.std(v, ddof=1))
+        h = float(student_t.ppf(0.5 + p / 2, n - 1)) * sd / np.sqrt(n)
+        out.update(std=sd, ci95=[out["mean"] - h, out["mean"] + h])
+    return out
+
+
+MC_PAIRS = (("atvfg", "fg"), ("atvfg", "fkf"), ("atvfg", "central"), ("atvfg", "ins"), ("atvfg", "atvfg_paper"),
+            ("atvfg_paper", "fg"), ("atvfg_paper", "fkf"), ("atvfg_paper", "central"))
+
+
+def monte_carlo(seeds, per_seed: dict[str, list], pairs=MC_PAIRS, p: float = 0.95) -> dict:
+    """Monte-Carlo headline over seeds: per algorithm the mean of the per-seed 3-D position RMSE with
+    its Student-t CI, and paired per-seed differences a − b (mean, CI, two-sided paired t-test p
+    value; negative = a better) and ratios a / b, for each pair in ``pairs`` where both ran.
+
+    ``per_seed[algo]``: per-seed RMSE (m) in the order of ``seeds`` (None = no estimate that seed).
+    A seed missing for either algorithm of a pair is left out of that pair."""
+    seeds = [int(s) for s in seeds]
+    out: dict = {"n_seeds": len(seeds), "seeds": seeds, "metric": "pos_rmse_m.3d per seed", "confidence": p,
+                 "per_algorithm": {}, "paired": {}}
+    for a, vals in per_seed.items():
+        out["per_algorithm"][a] = {**mean_ci(vals, p), "per_seed": {str(s): v for s, v in zip(seeds, vals)}}
+    for a, b in pairs:
+        if a not in per_seed or b not in per_seed:
+            continue
+        d, r = [], []
+        for va, vb in zip(per_seed[a], per_seed[b]):
+            if va is None or vb is None or not (np.isfinite(va) and np.isfinite(vb)):
+                continue
+            d.append(va - vb)
+            r.append(va / vb if vb > 0 else np.nan)
+        st = mean_ci(d, p)
+        pv = None
+        if st["n"] >= 2:
+            if st["std"] and st["std"] > 0:
+                from scipy.stats import t as student_t
+
+                tt = st["mean"] / (st["std"] / np.sqrt(st["n"]))
+                pv = float(2 * student_t.sf(abs(tt), st["n"] - 1))
+            else:
+                pv = 0.0 if st["mean"] else 1.0
+        out["paired"][f"{a}-{b}"] = {**st, "p_value": pv, "ratio": mean_ci(r, p),
+                                     "a_better_seeds": int(sum(x < 0 for x in d))}
+    return out
 
 
 def detection_counts(flagged: np.ndarray, faulty: np.ndarray) -> dict[str, int]:
@@ -200,6 +338,9 @@ def algorithm_metrics(uavs, t, pos_err: list[np.ndarray], vel_err: list[np.ndarr
     n, skipped = nees(pe, np.stack(cov))
     out["nees"] = n
     out["nees_skipped"] = skipped
+    out.update(nees_consistency(pe, np.stack(cov)))
+    # per-seed swarm 3-D RMSE, in the caller's seed order (report.build_report moves it to monte_carlo)
+    out["per_seed_pos_rmse_3d_m"] = [rmse(pe[s])["3d"] for s in range(pe.shape[0])]
     out["step_ms"] = percentiles(np.stack(step_ms), (50, 99))
     out["n_samples"] = int(np.all(np.isfinite(pe), axis=-1).sum())
     out["n_missing"] = int((~np.all(np.isfinite(pe), axis=-1)).sum())
