@@ -288,3 +288,31 @@ def test_monte_carlo_paired_differences():
     assert "atvfg-fkf" not in mc["paired"]  # fkf did not run
     c = mc["paired"]["atvfg-central"]
     assert c["ci95"][0] < c["mean"] < c["ci95"][1] and c["p_value"] > 0.05
+
+
+def test_report_monte_carlo_and_consistency_sections():
+    from swarmnav.report import build_report, render_markdown, validate_report
+
+    kw = dict(mode="in-process", scenario="s", seeds=[1, 2, 3], n_uavs=2, duration_s=1.0, detection=None,
+              detection_single=None, delta_l_m=0.3, delta_h_m={"p50": 1.0, "p95": 2.0},
+              provenance={"git": "abc", "config_sha256": "x", "packages": {}}, events=[])
+    e, P = _synthetic(1.0, S=3, K=10, N=2)
+    blocks = {a: M.algorithm_metrics([1, 2], np.arange(10.0), list(e * f), list(e), list(P), [np.ones((10, 2))] * 3)
+              for a, f in (("atvfg", 1.0), ("fg", 2.0))}
+    rep = build_report(algorithms=blocks, **kw)
+    assert validate_report(rep) == []
+    mc = rep["monte_carlo"]
+    assert mc["n_seeds"] == 3 and set(mc["per_algorithm"]) == {"atvfg", "fg"} and set(mc["paired"]) == {"atvfg-fg"}
+    assert mc["per_algorithm"]["fg"]["per_seed"]["2"] == pytest.approx(2 * mc["per_algorithm"]["atvfg"]["per_seed"]["2"])
+    assert mc["paired"]["atvfg-fg"]["ratio"]["mean"] == pytest.approx(0.5)
+    assert "per_seed_pos_rmse_3d_m" not in rep["algorithms"]["atvfg"]  # moved to monte_carlo
+    # the pooled figures keep their meaning
+    assert rep["algorithms"]["atvfg"]["pos_rmse_m"]["3d"] == pytest.approx(M.rmse(e)["3d"])
+    for k in ("nees_mean", "nees_in_band_share", "nees_mean_bounds"):
+        assert k in rep["algorithms"]["fg"]
+    md = render_markdown(rep)
+    assert "Monte Carlo over 3 seeds" in md and "atvfg − fg" in md and "Consistency" in md
+    one = build_report(algorithms={"atvfg": M.algorithm_metrics([1, 2], np.arange(10.0), [e[0]], [e[0]], [P[0]],
+                                                                [np.ones((10, 2))])}, **{**kw, "seeds": [7]})
+    assert one["monte_carlo"]["per_algorithm"]["atvfg"]["ci95"] is None
+    assert "Monte Carlo" not in render_markdown(one)

@@ -40,9 +40,15 @@ def build_report(*, mode: str, scenario: str, seeds: list[int], n_uavs: int, dur
 
     if mode not in ("in-process", "distributed"):
         raise ValueError(f"mode must be 'in-process' or 'distributed', not {mode!r}")
+    from .metrics import monte_carlo
+
     algos = {}
+    per_seed = {}
     for name in sorted(algorithms, key=lambda a: (ALGO_ORDER.index(a) if a in ALGO_ORDER else 99, a)):
         block = dict(algorithms[name])
+        ps = block.pop("per_seed_pos_rmse_3d_m", None)
+        if ps is not None:
+            per_seed[name] = list(ps)
         if name == "atvfg":
             block["detection"] = detection
         algos[name] = block
@@ -61,6 +67,8 @@ def build_report(*, mode: str, scenario: str, seeds: list[int], n_uavs: int, dur
         "improvement_pct": imp,
         "detection_single_threshold": detection_single,
         "thresholds": {"delta_l_m": delta_l_m, "delta_h_m": dict(delta_h_m)},
+        # mean over seeds of the per-seed 3-D RMSE, Student-t CI, paired differences (metrics.monte_carlo)
+        "monte_carlo": monte_carlo(seeds, per_seed),
         "provenance": provenance,
         "events": [{**e, "t": float(e["t"]), "kind": str(e["kind"]), "uav": int(e["uav"])} for e in events],
     }
@@ -162,6 +170,10 @@ def render_markdown(rep: dict) -> str:
     if "central" in algos:
         L.append("`central` is an **oracle**: one joint graph with the truly faulty links removed using the labels.")
     L.append("")
+    mc = rep.get("monte_carlo") or {}
+    if (mc.get("n_seeds") or 0) >= 2:
+        L.extend(monte_carlo_markdown(mc))
+        L.append("")
     L.append("## Table 2 — position RMSE of each algorithm (m)")
     L.append("")
     L.append("| Algorithm | E | N | U | 3-D | UAV 1 E | UAV 1 N | UAV 1 U | UAV 1 3-D | vel 3-D (m/s) | NEES (3) | step p50 (ms) | step p99 (ms) |")
@@ -194,6 +206,9 @@ def render_markdown(rep: dict) -> str:
             vo = (a.get("outage_vel_rmse_mps") or {}).get("3d")
             L.append(f"| {name} | {_f(nm['e'])} | {_f(nm['n'])} | {_f(nm['u'])} | {_f(nm['3d'])} | {_f(ou['e'])} | "
                      f"{_f(ou['n'])} | {_f(ou['u'])} | {_f(ou['3d'])} | {_f(ratio)} | {_f(vn, 3)} | {_f(vo, 3)} |")
+    if any(a.get("nees_mean") is not None for a in algos.values()):
+        L.append("")
+        L.extend(consistency_markdown(algos))
     if rep["improvement_pct"]:
         L.append("")
         L.append("## Improvement of atvfg (swarm 3-D position RMSE)")
@@ -252,6 +267,65 @@ def render_markdown(rep: dict) -> str:
     return "\n".join(L)
 
 
+def _ci(d: dict | None, nd: int = 3) -> str:
+    if not d or d.get("mean") is None:
+        return "—"
+    if not d.get("ci95"):
+        return _f(d["mean"], nd)
+    lo, hi = d["ci95"]
+    return f"{d['mean']:.{nd}f} [{lo:.{nd}f}, {hi:.{nd}f}]"
+
+
+def monte_carlo_markdown(mc: dict) -> list[str]:
+    """The Monte-Carlo headline as markdown lines: per algorithm the mean of the per-seed 3-D
+    position RMSE with its 95 % CI, then the paired per-seed differences."""
+    L = [f"## Monte Carlo over {mc['n_seeds']} seeds — 3-D position RMSE (m)", "",
+         f"Seeds {_seed_text(mc.get('seeds') or [])}. Mean of the per-seed swarm 3-D RMSE with its 95 % "
+         "confidence interval (Student t over seeds); paired = the difference of two algorithms on the same "
+         "seed (negative: the first is better), its mean, 95 % CI and two-sided paired t-test p value.", "",
+         "| Algorithm | n | mean [95 % CI] | std | min | max |", "|---|---:|---:|---:|---:|---:|"]
+    for a, d in mc.get("per_algorithm", {}).items():
+        v = [x for x in d.get("per_seed", {}).values() if x is not None]
+        L.append(f"| {a} | {d['n']} | {_ci(d)} | {_f(d.get('std'), 3)} | {_f(min(v), 3) if v else '—'} | "
+                 f"{_f(max(v), 3) if v else '—'} |")
+    if mc.get("paired"):
+        L += ["", "| Paired difference | n | mean [95 % CI] (m) | ratio mean [95 % CI] | first better | p |",
+              "|---|---:|---:|---:|---:|---:|"]
+        for k, d in mc["paired"].items():
+            pv = "—" if d.get("p_value") is None else f"{d['p_value']:.2g}"
+            L.append(f"| {k.replace('-', ' − ')} | {d['n']} | {_ci(d)} | {_ci(d.get('ratio'))} | "
+                     f"{d.get('a_better_seeds', '—')}/{d['n']} | {pv} |")
+    return L
+
+
+def _seed_text(seeds: list[int]) -> str:
+    if seeds and seeds == list(range(seeds[0], seeds[-1] + 1)) and len(seeds) > 2:
+        return f"{seeds[0]}–{seeds[-1]}"
+    return ", ".join(str(s) for s in seeds)
+
+
+def consistency_markdown(algos: dict) -> list[str]:
+    """NEES consistency per algorithm (metrics.nees_consistency) as markdown lines."""
+    band = next((a.get("nees_band") for a in algos.values() if a.get("nees_band")), None) or [0.216, 9.35]
+    L = ["## Consistency — 3-D position NEES (expected 3)", "",
+         f"In band: share of UAV-epochs whose NEES lies in the two-sided χ²(3) 95 % band [{band[0]:.3f}, {band[1]:.2f}] "
+         "(expected 95 %); below = covariance too large (conservative), above = too small (overconfident). "
+         "Mean bounds: the two-sided 95 % interval of the mean of M independent χ²(3) samples (optimistic: "
+         "errors are correlated in time). Epochs in bounds: the NEES averaged over seeds × UAVs at each epoch "
+         "against its own bounds (expected 95 %).", "",
+         "| Algorithm | NEES mean | mean bounds | verdict | in band | below | above | epochs in bounds | samples |",
+         "|---|---:|---:|---|---:|---:|---:|---:|---:|"]
+    for name, a in algos.items():
+        if a.get("nees_mean") is None:
+            continue
+        b = a.get("nees_mean_bounds") or [None, None]
+        L.append(f"| {name} | {_f(a['nees_mean'], 2)} | [{_f(b[0], 2)}, {_f(b[1], 2)}] | {a.get('nees_verdict') or '—'} | "
+                 f"{_pct(a.get('nees_in_band_share'))} | {_pct(a.get('nees_below_band_frac'))} | "
+                 f"{_pct(a.get('nees_above_band_frac'))} | {_pct(a.get('nees_epochs_in_bounds_frac'))} | "
+                 f"{a.get('nees_n', '—')} |")
+    return L
+
+
 def summary_table(rep: dict) -> str:
     """A compact fixed-width table for stdout."""
     hdr = f"{'algo':<11} {'pos3d[m]':>9} {'vel3d[m/s]':>10} {'uav1[m]':>8} {'NEES':>7} {'p50[ms]':>8} {'p99[ms]':>8}  detection P/R/FA"
@@ -267,6 +341,12 @@ def summary_table(rep: dict) -> str:
         rows.append(f"single threshold at Δh: P/R/FA {_pct(s['precision'])} / {_pct(s['recall'])} / {_pct(s['false_alarm_rate'])}")
     for k, v in rep["improvement_pct"].items():
         rows.append(f"improvement {k}: {_f(v, 1)} %")
+    mc = rep.get("monte_carlo") or {}
+    if (mc.get("n_seeds") or 0) >= 2:
+        rows.append(f"Monte Carlo over {mc['n_seeds']} seeds, mean per-seed 3-D RMSE [95 % CI] (m): "
+                    + "; ".join(f"{a} {_ci(d)}" for a, d in mc["per_algorithm"].items()))
+        for k, d in mc.get("paired", {}).items():
+            rows.append(f"  paired {k}: {_ci(d)} m")
     return "\n".join(rows)
 
 
