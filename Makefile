@@ -6,6 +6,7 @@ STAMP   := $(VENV)/.setup-stamp
 CONFIG  ?= configs/paper.toml
 ALGO    ?= atvfg
 SEED    ?= 1
+LIVE    ?=
 MILUV   ?= ../shared/data/miluv/cirObstacles_3_random_0
 export OMP_NUM_THREADS=1
 export OPENBLAS_NUM_THREADS=1
@@ -14,7 +15,7 @@ export MKL_NUM_THREADS=1
 .PHONY: setup demo run dropout miluv chaos view test test-fast evaluate clean help
 help:            ## list targets and variables
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*##/ —/'
-	@echo "variables: CONFIG=$(CONFIG) ALGO=$(ALGO) SEED=$(SEED) MILUV=$(MILUV) (e.g. make run CONFIG=configs/smoke.toml ALGO=fg SEED=2)"
+	@echo "variables: CONFIG=$(CONFIG) ALGO=$(ALGO) SEED=$(SEED) MILUV=$(MILUV) LIVE=$(LIVE) (e.g. make run CONFIG=configs/smoke.toml ALGO=fg SEED=2; make run LIVE=1: follow the run in a Rerun viewer)"
 
 setup: $(STAMP)  ## create/refresh .venv with the pinned dependencies
 $(STAMP): requirements.lock pyproject.toml
@@ -31,7 +32,7 @@ demo: setup      ## 30-second first look: smoke (5 UAVs, 60 s), all five algorit
 	else echo "recording: runs/demo/evaluate.rrd (no display here: open it with '$(CURDIR)/$(BIN)/rerun runs/demo/evaluate.rrd' on a machine with one, or serve it with --web-viewer)"; fi
 
 run: setup       ## the paper scenario as a real multi-process Zenoh swarm (results in runs/latest)
-	$(BIN)/swarmnav launch --config $(CONFIG) --algo $(ALGO) --seed $(SEED)
+	$(BIN)/swarmnav launch --config $(CONFIG) --algo $(ALGO) --seed $(SEED) $(if $(LIVE),--live)
 
 dropout: setup   ## configs/dropout.toml: UAV 7 killed at 400 s, restarted at 600 s
 	$(BIN)/swarmnav launch --config configs/dropout.toml --algo $(ALGO) --seed $(SEED)

@@ -21,9 +21,11 @@ from __future__ import annotations
 import ctypes
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
+import urllib.parse
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -71,6 +73,8 @@ class LaunchSpec:
     timeout_s: float = 3600.0
     secure: bool = True
     sim_extra: list[str] = field(default_factory=list)  # extra sensor_sim arguments (test hooks)
+    live: tuple[str, int] | None = None  # the monitor also serves the recording live on (bind address, port)
+    web_port: int | None = None  # ... and a Rerun web viewer is served on this port (when no display is there)
 
 
 @dataclass
@@ -155,7 +159,8 @@ def _build_procs(spec: LaunchSpec, router: str, run_id: str, sec) -> tuple[Proc,
                            "--security-mode", sec.mode, "--acl", "on" if sec.acl else "off"]
                + [a for u, t in spec.kills for a in ("--kill", f"{u}@{t}")]
                + [a for u, t in spec.restarts for a in ("--restart", f"{u}@{t}")]
-               + (["--config-sha256", spec.config_sha256] if spec.config_sha256 else []), logs / "monitor.log")
+               + (["--config-sha256", spec.config_sha256] if spec.config_sha256 else [])
+               + (["--live", f"{spec.live[0]}:{spec.live[1]}"] if spec.live else []), logs / "monitor.log")
     nodes = {u: Proc(f"uav{u}", [*pyrun(f"uav{u}"), "-m", "services.uav_node", *common(f"uav-{u}"), "--uav", str(u),
                                  "--algo", spec.algo], logs / f"uav{u}.log") for u in spec.uavs}
     sim_argv = [*pyrun("sensor_sim"), "-m", "services.sensor_sim", *common("sensor-sim"), "--dataset", str(spec.dataset),
@@ -186,6 +191,10 @@ def launch(spec: LaunchSpec) -> LaunchResult:
               f"{sec.endpoint} and enforces no access control (debugging only)", file=sys.stderr)
     mon, nodes, sim = _build_procs(spec, sec.endpoint, run_id, sec)
     procs = [mon, *nodes.values(), sim]
+    viewer = live_viewer(spec) if spec.live else None
+    if viewer is not None:
+        viewer.expected_kill = True  # stopped with the run on purpose: its exit status says nothing
+        procs.append(viewer)
     events: list[dict] = []
     status, reason = 0, None
     t0 = time.monotonic()
@@ -276,6 +285,33 @@ def launch(spec: LaunchSpec) -> LaunchResult:
         if rc != 0 and status == 0 and not p.expected_kill:
             status = 1
     return LaunchResult(status, summary, reason, events, sec.report_block())
+
+
+def live_viewer(spec: LaunchSpec) -> Proc | None:
+    """Say where the live recording is served; open a native Rerun viewer on it when there is a
+    display (it outlives the run), else return a web-viewer process to start with the run (a browser
+    anywhere that reaches this machine shows it; it stops with the run, the page keeps its data)."""
+    from services.recording import live_url
+
+    bind, port = spec.live
+    local = "127.0.0.1" if bind in ("0.0.0.0", "::") else bind
+    shown = socket.gethostname() if bind in ("0.0.0.0", "::") else bind
+    url = live_url(local, port)
+    rerun = Path(sys.executable).with_name("rerun")
+    print(f"swarmnav launch: live recording served at {live_url(shown, port)} "
+          f"(a viewer anywhere: rerun {live_url(shown, port)})", file=sys.stderr)
+    if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+        with open(spec.run_dir / "logs" / "viewer.log", "ab") as f:
+            subprocess.Popen([str(rerun), url], stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                             start_new_session=True)
+        print("swarmnav launch: opened a Rerun viewer on it", file=sys.stderr)
+        return None
+    if spec.web_port is None:
+        return None
+    web = f"http://{shown}:{spec.web_port}/?url=" + urllib.parse.quote(live_url(shown, port), safe="")
+    print(f"swarmnav launch: no display here: web viewer at {web}", file=sys.stderr)
+    return Proc("web_viewer", [str(rerun), "--serve-web", "--bind", bind, "--web-viewer-port", str(spec.web_port),
+                               live_url(shown, port)], spec.run_dir / "logs" / "web_viewer.log")
 
 
 def _wait_finish(sim: Proc, mon: Proc, nodes: dict[int, Proc], stopping: dict) -> None:

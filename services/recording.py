@@ -105,6 +105,14 @@ class FileRecording:
         close_recording(self.rec)
 
 
+LIVE_MEMORY_LIMIT = "512MiB"  # what a live server keeps for viewers that connect late (oldest dropped first)
+
+
+def live_url(host: str, port: int) -> str:
+    """The address a Rerun viewer opens to follow a live run."""
+    return f"rerun+http://{host}:{int(port)}/proxy"
+
+
 class SegmentedRecording:
     """A live recording that is valid on disk whatever happens to the process (the monitor's).
 
@@ -117,13 +125,19 @@ class SegmentedRecording:
     file do not verify in rerun 0.41: "More than one RRD manifest".)
     """
 
-    def __init__(self, seg_dir, final_path, recording_id: str | None = None, blueprint: rrb.Blueprint | None = None):
+    def __init__(self, seg_dir, final_path, recording_id: str | None = None, blueprint: rrb.Blueprint | None = None,
+                 live: tuple[str, int] | None = None):
         from pathlib import Path
 
         self.dir, self.final = Path(seg_dir), Path(final_path)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.rec = rr.RecordingStream(APP_ID, recording_id=recording_id)
         self.stream = self.rec.binary_stream()
+        if live is not None:
+            # the live view: the same log calls also go to a gRPC server that viewers connect to
+            # (``rerun rerun+http://HOST:PORT/proxy``); it buffers what was logged for late viewers
+            self.rec.set_sinks(self.stream, rr.GrpcServerSink(bind_ip=live[0], port=int(live[1]),
+                                                              server_memory_limit=LIVE_MEMORY_LIMIT))
         if blueprint is not None:
             self.rec.send_blueprint(blueprint)
         self.n = 0

@@ -10,7 +10,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.parametrize("args, says", [
-    (["launch", "--config", "configs/smoke.toml", "--algo", "foo"], "atvfg, fg, fkf, ins"),
+    (["launch", "--config", "configs/smoke.toml", "--algo", "foo"], "atvfg, atvfg_paper, fg, fkf, ins"),
     (["launch", "--config", "configs/smoke.toml", "--algo", "central"], "in-process only"),
     (["launch", "--config", "configs/smoke.toml", "--kill", "3@999"], "inside the scenario"),
     (["launch", "--config", "configs/smoke.toml", "--restart", "3@20"], "not killed before"),

@@ -32,6 +32,7 @@ examples:
   swarmnav launch --config configs/smoke.toml --kill 2@15 --restart 2@25 --out runs/dropout
   swarmnav launch --config configs/smoke.toml --rate 1              # real time instead of lockstep
   swarmnav launch --dataset runs/miluv-dataset --seed 0             # replay a recorded dataset
+  swarmnav launch --config configs/smoke.toml --rate 1 --live       # watch it live in a Rerun viewer
   swarmnav report runs/latest                                       # rebuild the outputs after a crash
 """
 
@@ -66,6 +67,14 @@ def add_arguments(p):
     p.add_argument("--force", action="store_true", help="clear an existing run directory given with --out first")
     p.add_argument("--insecure", action="store_true",
                    help="debugging only: plain TCP router, no authentication, no access control (default: mutual TLS + ACL)")
+    p.add_argument("--live", action="store_true",
+                   help="follow the run in a Rerun viewer while it records: the monitor serves the recording "
+                        "over gRPC (--live-bind/--live-port); a viewer opens when there is a display, else a web "
+                        "viewer is served on --web-port for a browser (swarm.rrd is written as always)")
+    p.add_argument("--live-bind", default="127.0.0.1", metavar="ADDR",
+                   help="address the live recording is served on (default 127.0.0.1; 0.0.0.0 for other machines)")
+    p.add_argument("--live-port", type=int, default=9876, metavar="PORT", help="gRPC port of the live recording (default 9876)")
+    p.add_argument("--web-port", type=int, default=9090, metavar="PORT", help="port of the web viewer with --live (default 9090)")
     p.add_argument("--timeout", type=float, default=7200.0, help="wall-clock limit of the whole run (s)")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--garbage-at", type=int, default=None, help=argparse.SUPPRESS)  # test hook
@@ -128,6 +137,26 @@ def check_schedule(kills, restarts, uavs: list[int], t_start: float, duration_s:
             raise SwarmnavError(f"--restart {u}@{t:g}: UAV {u} is not killed before {t:g} s; add --kill {u}@T with T < {t:g}")
 
 
+def check_live_ports(bind: str, live_port: int, web_port: int) -> None:
+    """--live: ports in range, distinct and free on the bind address, before any work starts."""
+    import socket
+
+    from swarmnav.errors import SwarmnavError
+
+    for flag, port in (("--live-port", live_port), ("--web-port", web_port)):
+        if not 1 <= port <= 65535:
+            raise SwarmnavError(f"{flag} {port}: a TCP port is 1..65535")
+    if live_port == web_port:
+        raise SwarmnavError(f"--live-port and --web-port are both {live_port}: choose two different ports")
+    for flag, port in (("--live-port", live_port), ("--web-port", web_port)):
+        with socket.socket(socket.AF_INET6 if ":" in bind else socket.AF_INET) as s:
+            try:
+                s.bind((bind, port))
+            except OSError as e:
+                raise SwarmnavError(f"{flag} {port}: cannot serve on {bind}:{port} ({e.strerror}; another viewer "
+                                    f"or run?): choose a free port with {flag}, or --live-bind") from None
+
+
 def run(args) -> int:
     from deploy.launcher import LaunchSpec, launch
     from swarmnav.dataset import Dataset
@@ -136,6 +165,8 @@ def run(args) -> int:
     if args.rate is not None and not args.rate > 0:
         raise SwarmnavError(f"--rate {args.rate:g}: must be a real-time factor > 0 (e.g. --rate 1), or leave it out for lockstep")
     check_algo(args.algo)
+    if args.live:
+        check_live_ports(args.live_bind, args.live_port, args.web_port)
     kills, restarts = list(args.kill), list(args.restart)
     sha = None
     if args.config:
@@ -178,6 +209,7 @@ def run(args) -> int:
                       n_epochs=ds.meta.n_epochs(), kills=sorted(kills, key=lambda x: x[1]),
                       restarts=sorted(restarts, key=lambda x: x[1]), config_sha256=sha, rate=args.rate,
                       progress=not args.no_progress, timeout_s=args.timeout, secure=not args.insecure,
+                      live=(args.live_bind, args.live_port) if args.live else None, web_port=args.web_port,
                       sim_extra=["--garbage-at", str(args.garbage_at)] if args.garbage_at else [])
     t0 = time.perf_counter()
     res = launch(spec)
@@ -193,7 +225,8 @@ def finish_report(run_dir: Path, res, wall: float, duration_s: float) -> int:
     from deploy.launcher import describe_exit
 
     for n, s in res.processes.items():
-        note = "killed by schedule" if s["killed_by_schedule"] else ("restarted" if s["earlier"] else "")
+        note = ("stopped with the run" if n == "web_viewer" else "killed by schedule" if s["killed_by_schedule"]
+                else "restarted" if s["earlier"] else "")
         print(f"{n:<12} {describe_exit(s['exit']):>18}  {note}")
     rp = run_dir / "report.json"
     if rp.is_file():

@@ -42,6 +42,8 @@ def parse_args(argv=None):
     p.add_argument("--dataset", required=True, help="for scoring (truth, fault labels)")
     p.add_argument("--seed", type=int, required=True)
     p.add_argument("--algo", default="atvfg")
+    p.add_argument("--live", default=None, metavar="HOST:PORT",
+                   help="also serve the recording live over gRPC on HOST:PORT (a Rerun viewer connects to it)")
     p.add_argument("--out", required=True, help="run directory (swarm.rrd, report.json, report.md)")
     p.add_argument("--config-sha256", default=None)
     p.add_argument("--kill", type=_fault, action="append", default=[], help="scheduled kill ID@T (estimates not expected)")
@@ -68,7 +70,11 @@ class Monitor:
         jr = J.JournalWriter(J.journal_path(out), header)
         from services.monitor.core import LINK_ALGOS
 
-        sink = R.SegmentedRecording(out / "recording", out / "swarm.rrd", recording_id=args.run,
+        live = None
+        if args.live:
+            host, _, port = args.live.rpartition(":")
+            live = (host or "127.0.0.1", int(port))
+        sink = R.SegmentedRecording(out / "recording", out / "swarm.rrd", recording_id=args.run, live=live,
                                     blueprint=R.default_blueprint([args.algo], [args.algo] if args.algo in LINK_ALGOS else []))
         self.core = MonitorCore(run=args.run, dataset=Path(args.dataset), seed=args.seed, algo=args.algo, out=out, sink=sink,
                                 kills=args.kill, restarts=args.restart, security=header["security"],
