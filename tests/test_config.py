@@ -118,3 +118,26 @@ def test_load_estimation_names_bad_field(tmp_path):
     p.write_text("[scenario]\nname = 'x'\n")
     with pytest.raises(ConfigError, match=r"no \[estimation\] table"):
         load_estimation(p)
+
+
+def test_evaluation_names_tuning_and_report_seeds(tmp_path):
+    """[evaluation]: tuning seeds and report seeds are named in the config and disjoint."""
+    from swarmnav.config import parse_seed_spec
+
+    ev = load_config(PAPER).evaluation
+    assert ev.seeds("tuning") == list(range(1001, 1011)) and ev.seeds("report") == list(range(1, 11))
+    assert "paper_faultfree" in ev.tuning_scenarios
+    ff = load_config(CONFIGS / "paper_faultfree.toml")
+    assert ff.scenario.seed in ev.seeds("tuning")  # Δl is trained on a tuning seed
+    assert ev.role_of([2, 3]) == "report" and ev.role_of([1001]) == "tuning" and ev.role_of([1, 1001]) == "mixed"
+    assert ev.role_of([55]) == "other"
+    assert parse_seed_spec("1-3,7") == [1, 2, 3, 7] and parse_seed_spec([5, 2, 5]) == [2, 5]
+    for bad, says in (('tuning_seeds = "1-5"\nreport_seeds = "5-10"\n', ["evaluation", "overlap", "[5]"]),
+                      ('report_seeds = "x-3"\n', ["evaluation", "cannot parse seeds"]),
+                      ('report_seed = "1-3"\n', ["evaluation.report_seed", "Extra inputs"])):
+        p = tmp_path / "ev.toml"
+        p.write_text(f'base = "{PAPER}"\n[evaluation]\n{bad}')
+        with pytest.raises(ConfigError) as ei:
+            load_config(p)
+        for s in says:
+            assert s in str(ei.value), (s, str(ei.value))
