@@ -71,6 +71,18 @@ def parse_seeds(text: str) -> list[int]:
     return sorted(out)
 
 
+def config_seeds(text: str, sc) -> list[int]:
+    """--seeds with a config: 'report' / 'tuning' name the [evaluation] seed sets; else parse_seeds.
+    A warning on stderr when seeds the settings were tuned on are evaluated (numbers not to report)."""
+    text = str(text).strip()
+    seeds = sc.evaluation.seeds(text) if text in ("report", "tuning") else parse_seeds(text)
+    role = sc.evaluation.role_of(seeds)
+    if role in ("tuning", "mixed"):
+        print(f"swarmnav evaluate: note: seeds {sorted(set(seeds) & set(sc.evaluation.seeds('tuning')))} are "
+              f"tuning seeds of {sc.scenario.name} ([evaluation] tuning_seeds): numbers not to report", file=sys.stderr)
+    return seeds
+
+
 def parse_algos(text: str) -> list[str]:
     from swarmnav.errors import ConfigError
     from swarmnav.estimators import registry
@@ -94,7 +106,8 @@ def add_arguments(p):
     src.add_argument("--config", help="scenario TOML; each seed's dataset is simulated exactly as `simulate --seed N`")
     src.add_argument("--dataset", help="dataset directory, used as-is (simulated or imported real data)")
     p.add_argument("--algos", default=ALL_ALGOS, help=f"comma-separated algorithms (default {ALL_ALGOS})")
-    p.add_argument("--seeds", default=None, help="seeds: 1-5, 1,3,7 or mixes (default: the config's / dataset's seed)")
+    p.add_argument("--seeds", default=None, help="seeds: 1-5, 1,3,7 or mixes, or 'report' / 'tuning' (the config's "
+                   "[evaluation] report_seeds / tuning_seeds; default: the config's / dataset's seed)")
     p.add_argument("--out", default="runs/evaluate", help="output directory (default runs/evaluate)")
     p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes (default 2)")
     p.add_argument("--no-rrd", action="store_true", help="skip the Rerun recording")
@@ -165,12 +178,16 @@ def _load_inputs(args):
 
         cfg_path = Path(args.config)
         sc = load_config(cfg_path)
-        seeds = parse_seeds(args.seeds) if args.seeds else [sc.scenario.seed]
+        seeds = config_seeds(args.seeds, sc) if args.seeds else [sc.scenario.seed]
         settings = registry.estimator_settings(sc.estimation, base_dirs=(cfg_path.resolve().parent.parent, cfg_path.resolve().parent))
         return sc.scenario.name, seeds, settings, sc.sha256(), None, cfg_path
     from services.provenance import dataset_sha256
 
     ds = Dataset.read(args.dataset)
+    if args.seeds and args.seeds.strip() in ("report", "tuning"):
+        from swarmnav.errors import ConfigError
+
+        raise ConfigError(f"--seeds {args.seeds.strip()}: names the seeds of a config's [evaluation] table; use --config")
     seeds = parse_seeds(args.seeds) if args.seeds else [ds.meta.seed if ds.meta.seed is not None else 0]
     settings = registry.settings_for_dataset(ds.meta)
     return ds.meta.name, seeds, settings, dataset_sha256(ds.meta), ds, None

@@ -229,6 +229,72 @@ class Estimation(_Model):
     graph: dict[str, float | int | bool | str | None] | None = None
 
 
+def parse_seed_spec(spec: str | int | list[int]) -> list[int]:
+    """Seeds from ``"1-10"``, ``"1,3,7"``, mixes like ``"1-3,7"``, one int, or a list of ints: sorted,
+    duplicates removed. Raises ValueError naming the bad part."""
+    if isinstance(spec, bool):
+        raise ValueError(f"not a seed list: {spec!r}")
+    if isinstance(spec, int):
+        spec = [spec]
+    out: set[int] = set()
+    if isinstance(spec, list):
+        out.update(int(s) for s in spec)
+    else:
+        for part in str(spec).replace(" ", "").split(","):
+            if not part:
+                continue
+            try:
+                if "-" in part[1:]:
+                    i = part.index("-", 1)
+                    lo, hi = int(part[:i]), int(part[i + 1:])
+                    if hi < lo:
+                        raise ValueError
+                    out.update(range(lo, hi + 1))
+                else:
+                    out.add(int(part))
+            except ValueError:
+                raise ValueError(f"cannot parse seeds {part!r} (use e.g. 1-5, 1,3,7 or 1-3,7)") from None
+    if not out:
+        raise ValueError("no seed given")
+    if min(out) < 0:
+        raise ValueError("seeds must be >= 0")
+    return sorted(out)
+
+
+class Evaluation(_Model):
+    """Which seeds tune and which report (``[evaluation]``): tune nothing to a seed you report.
+
+    Settings (``[estimation]``, Δl training) are chosen on ``tuning_seeds`` of this scenario and on
+    the scenarios named in ``tuning_scenarios``; the headline (README, docs/results.md) is a Monte
+    Carlo over ``report_seeds`` (``swarmnav evaluate --seeds report``). The two sets are disjoint."""
+
+    tuning_seeds: str | list[int] = Field("1001-1010", description="seeds the settings were tuned on, e.g. '1001-1010'")
+    report_seeds: str | list[int] = Field("1-10", description="seeds the headline is reported on, e.g. '1-10'")
+    tuning_scenarios: list[str] = Field(default_factory=list,
+                                        description="other scenarios (config names) the settings were tuned on")
+
+    @model_validator(mode="after")
+    def _disjoint(self) -> "Evaluation":
+        tune, rep = self.seeds("tuning"), self.seeds("report")  # raise on a bad spec
+        both = sorted(set(tune) & set(rep))
+        if both:
+            raise ValueError(f"tuning_seeds and report_seeds overlap on {both}: tune nothing to a seed you report")
+        return self
+
+    def seeds(self, role: Literal["tuning", "report"]) -> list[int]:
+        return parse_seed_spec(self.tuning_seeds if role == "tuning" else self.report_seeds)
+
+    def role_of(self, seeds) -> str:
+        """'report', 'tuning', 'mixed' (some of each: numbers not to publish) or 'other'."""
+        s = {int(x) for x in seeds}
+        tune, rep = set(self.seeds("tuning")), set(self.seeds("report"))
+        if not s:
+            return "other"
+        if s <= tune:
+            return "tuning"
+        return "mixed" if s & tune else "report" if s <= rep else "other"
+
+
 class Scenario(_Model):
     """A whole scenario file."""
 
@@ -240,6 +306,7 @@ class Scenario(_Model):
     faults: Faults = Faults()
     init: InitialKnowledge = InitialKnowledge()
     estimation: Estimation = Estimation()
+    evaluation: Evaluation = Evaluation()
 
     @model_validator(mode="after")
     def _cross(self) -> "Scenario":
