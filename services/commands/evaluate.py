@@ -144,8 +144,10 @@ def _run_task(task):
 
     try:
         return tid, run_algorithm(_DATASETS[seed], algo, seed, _SETTINGS, prog), None
-    except Exception:  # noqa: BLE001 - reported by the parent
-        return tid, None, traceback.format_exc()
+    except Exception as e:  # noqa: BLE001 - reported by the parent: first line for the user, then the traceback
+        from swarmnav.errors import describe_estimator_failure
+
+        return tid, None, describe_estimator_failure(algo, seed, e) + "\n" + traceback.format_exc()
 
 
 def _simulate(args_tuple):
@@ -249,9 +251,9 @@ def run(args) -> int:
     def handle(tid, res, err):
         _, a, s = tasks[tid]
         if err:
-            failures[f"{a}/seed{s}"] = err.strip().splitlines()[-1]
+            failures[f"{a}/seed{s}"] = err.strip().splitlines()[0]
             log.error("%s seed %d failed:\n%s", a, s, err)
-            tqdm.write(f"swarmnav evaluate: {a} seed {s} FAILED: {failures[f'{a}/seed{s}']}", file=sys.stderr)
+            tqdm.write(f"swarmnav evaluate: FAILED: {failures[f'{a}/seed{s}']}", file=sys.stderr)
         else:
             results[(a, s)] = res
             log.info("%s seed %d: %.1f s wall", a, s, res.wall_s)
@@ -265,8 +267,10 @@ def run(args) -> int:
             try:
                 res = run_algorithm(_DATASETS[s], a, s, settings, lambda k, KK: bar.update(1))
                 handle(tid, res, None)
-            except Exception:  # noqa: BLE001
-                handle(tid, None, traceback.format_exc())
+            except Exception as e:  # noqa: BLE001
+                from swarmnav.errors import describe_estimator_failure
+
+                handle(tid, None, describe_estimator_failure(a, s, e) + "\n" + traceback.format_exc())
             bar.close()
     else:
         _QUEUE = ctx.Queue()

@@ -210,7 +210,8 @@ class CentralEstimator(SwarmEstimator):
             pose = gtsam.Pose3(R, np.asarray(ini.pos, float))
             Rm = R.matrix()
             C = np.zeros((6, 6))
-            C[0:3, 0:3] = Rm.T @ np.diag(np.asarray(ini.att_sigma, float) ** 2) @ Rm  # body-frame tangent
+            # body-frame tangent; a sigma of 0 ("known exactly") floored at 1e-4 rad as in graph.py
+            C[0:3, 0:3] = Rm.T @ np.diag(np.maximum(np.asarray(ini.att_sigma, float), 1e-4) ** 2) @ Rm
             C[3:6, 3:6] = Rm.T @ np.diag(np.asarray(ini.pos_sigma, float) ** 2) @ Rm
             g.add(gtsam.PriorFactorPose3(X(u, 0), pose, gtsam.noiseModel.Gaussian.Covariance(C)))
             g.add(gtsam.PriorFactorVector(V(u, 0), np.asarray(ini.vel, float), gtsam.noiseModel.Isotropic.Sigma(3, max(ini.vel_sigma, 1e-3))))
