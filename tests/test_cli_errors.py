@@ -9,20 +9,47 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
+BROKEN_TOML = "[scenario\nname = 1\n"
+
+
+# every subcommand, with the mistakes a user makes; "{out}" is where the command would have written
 @pytest.mark.parametrize("args, says", [
-    (["launch", "--config", "configs/smoke.toml", "--algo", "foo"], "atvfg, atvfg_paper, fg, fkf, ins"),
-    (["launch", "--config", "configs/smoke.toml", "--algo", "central"], "in-process only"),
-    (["launch", "--config", "configs/smoke.toml", "--kill", "3@999"], "inside the scenario"),
-    (["launch", "--config", "configs/smoke.toml", "--restart", "3@20"], "not killed before"),
-    (["launch", "--config", "configs/smoke.toml", "--rate", "-2"], "real-time factor > 0"),
-    (["launch", "--config", "configs/smoke.toml", "--kill", "99@10"], "does not exist"),
+    (["launch", "--config", "configs/smoke.toml", "--algo", "foo", "--out", "{out}"], "atvfg, atvfg_paper, fg, fkf, ins"),
+    (["launch", "--config", "configs/smoke.toml", "--algo", "central", "--out", "{out}"], "in-process only"),
+    (["launch", "--config", "configs/smoke.toml", "--kill", "3@999", "--out", "{out}"], "inside the scenario"),
+    (["launch", "--config", "configs/smoke.toml", "--restart", "3@20", "--out", "{out}"], "not killed before"),
+    (["launch", "--config", "configs/smoke.toml", "--rate", "-2", "--out", "{out}"], "real-time factor > 0"),
+    (["launch", "--config", "configs/smoke.toml", "--kill", "99@10", "--out", "{out}"], "does not exist"),
+    (["launch", "--config", "configs/smoke.toml", "--timeout", "-1", "--out", "{out}"], "must be > 0"),
+    (["launch", "--config", "configs/smoke.toml", "--seed", "-1", "--out", "{out}"], "seed must be >= 0"),
+    (["launch", "--config", "configs/smoke.toml", "--live", "--live-port", "70000", "--out", "{out}"], "1..65535"),
+    (["launch", "--dataset", "{tmp}", "--out", "{out}"], "not a dataset directory"),
+    (["launch", "--config", "{broken}", "--out", "{out}"], "not valid TOML"),
+    (["simulate", "--config", "nope.toml", "--out", "{out}"], "config file not found"),
+    (["simulate", "--config", "{broken}", "--out", "{out}"], "not valid TOML"),
+    (["simulate", "--config", "configs/smoke.toml", "--seed", "-3", "--out", "{out}"], "--seed must be >= 0"),
+    (["evaluate", "--config", "configs/smoke.toml", "--algos", "foo", "--out", "{out}"], "unknown algorithm 'foo'"),
+    (["evaluate", "--config", "configs/smoke.toml", "--seeds", "3-1", "--out", "{out}"], "cannot parse '3-1'"),
+    (["evaluate", "--config", "configs/smoke.toml", "--jobs", "0", "--out", "{out}"], "--jobs 0"),
+    (["evaluate", "--dataset", "{tmp}", "--out", "{out}"], "not a dataset directory"),
+    (["evaluate", "--dataset", "{tmp}", "--seeds", "tuning", "--out", "{out}"], "not a dataset directory"),
+    (["calibrate", "--config", "configs/paper_faultfree.toml"], "needs --out FILE"),
+    (["import-miluv", "nope", "--out", "{out}"], "not a directory"),
+    (["import-miluv", "{tmp}", "--out", "{out}"], "no robot folders"),
     (["report", "configs"], "no monitor journal"),
-    (["keys", "--uavs", "x-y"], "expected ids like 1-18"),
+    (["report", "{tmp}/nope"], "not a directory"),
+    (["keys", "--uavs", "x-y", "--out", "{out}"], "expected ids like 1-18"),
+    (["keys", "--uavs", "1-3", "--router-host", "999.1.1.1", "--out", "{out}"], "not an IP address or a DNS name"),
+    (["keys", "--uavs", "1-3", "--port", "0", "--out", "{out}"], "not a TCP port"),
 ])
 def test_bad_input_is_refused_before_any_work(tmp_path, args, says):
     out = tmp_path / "out"
-    argv = [sys.executable, "-m", "services.cli", *args] + (["--out", str(out)] if args[0] in ("launch", "keys") else [])
-    r = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=60)
+    broken = tmp_path / "broken.toml"
+    broken.write_text(BROKEN_TOML)
+    (tmp_path / "empty").mkdir()
+    argv = [a.format(out=out, tmp=tmp_path / "empty", broken=broken) for a in args]
+    r = subprocess.run([sys.executable, "-m", "services.cli", *argv], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2, (r.stdout, r.stderr)
     assert says in r.stderr and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert r.stderr.startswith(f"swarmnav {args[0]}: error: "), r.stderr
     assert not out.exists()

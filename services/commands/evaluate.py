@@ -199,22 +199,25 @@ def run(args) -> int:
     global _SETTINGS, _QUEUE
     import multiprocessing as mp
 
-    import numpy as np
+    from swarmnav.errors import ConfigError
 
     t_wall = time.perf_counter()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    handler = _setup_log(out)
+    # every input checked before anything is written
+    if args.jobs < 1:
+        raise ConfigError(f"--jobs {args.jobs}: the number of worker processes must be >= 1 (default 2)")
+    jobs = int(args.jobs)
     algos = parse_algos(args.algos)
     from swarmnav.estimators import registry
 
     for a in algos:  # fail fast (and import once here, so forked workers inherit the modules)
         registry.estimator_class(a)
     name, seeds, settings, cfg_sha, ds_given, cfg_path = _load_inputs(args)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    handler = _setup_log(out)
     _SETTINGS = settings
     log.info("evaluate %s: algos=%s seeds=%s settings=%s", name, algos, seeds, settings)
     quiet = bool(args.quiet)
-    jobs = max(1, int(args.jobs))
     ctx = mp.get_context("fork")
 
     # 1. datasets

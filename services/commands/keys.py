@@ -31,6 +31,23 @@ def add_arguments(p):
     p.add_argument("--port", type=int, default=7447, help="router TLS port (default 7447)")
 
 
+def check_host(host: str) -> None:
+    """An IP address or a DNS name (RFC 1123 labels); a dotted quad must be a valid IPv4 address."""
+    import ipaddress
+    import re
+
+    from swarmnav.errors import SwarmnavError
+
+    try:
+        ipaddress.ip_address(host)
+        return
+    except ValueError:
+        pass
+    label = r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)"
+    if re.fullmatch(r"[0-9.]+", host) or not re.fullmatch(rf"{label}(\.{label})*\.?", host) or len(host) > 253:
+        raise SwarmnavError(f"--router-host {host!r}: not an IP address or a DNS name (e.g. 10.0.0.1 or router.local)")
+
+
 def run(args) -> int:
     from deploy.security import make_identities
     from swarmnav.errors import SwarmnavError
@@ -47,6 +64,7 @@ def run(args) -> int:
         K.everything(args.run)
     except ValueError as e:
         raise SwarmnavError(f"--run: {e}") from None
+    check_host(args.router_host)
     if not 0 < args.port < 65536:
         raise SwarmnavError(f"--port {args.port}: not a TCP port")
     out = Path(args.out)

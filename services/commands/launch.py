@@ -165,6 +165,8 @@ def run(args) -> int:
     if args.rate is not None and not args.rate > 0:
         raise SwarmnavError(f"--rate {args.rate:g}: must be a real-time factor > 0 (e.g. --rate 1), or leave it out for lockstep")
     check_algo(args.algo)
+    if not args.timeout > 0:
+        raise SwarmnavError(f"--timeout {args.timeout:g}: the run's wall-clock limit must be > 0 s (default 7200)")
     if args.live:
         check_live_ports(args.live_bind, args.live_port, args.web_port)
     kills, restarts = list(args.kill), list(args.restart)
@@ -187,6 +189,8 @@ def run(args) -> int:
         name = ds.meta.name
         seed = args.seed if args.seed is not None else (ds.meta.seed or 0)
         check_schedule(kills, restarts, ds.meta.uav_ids(), ds.meta.t_start, ds.meta.duration_s)
+    if seed < 0:
+        raise SwarmnavError(f"--seed {seed}: seed must be >= 0")
     run_dir = Path(args.out) if args.out else default_run_dir(name)
     prepare_run_dir(run_dir, args.force)
     run_dir.mkdir(parents=True, exist_ok=True)
