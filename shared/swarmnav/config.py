@@ -186,6 +186,48 @@ class ProcessKill(_Model):
     restart_s: float | None = None
 
 
+class UwbErrorModel(_Model):
+    """Which UWB ranging error model the simulator draws from (``[faults.uwb]``; docs/uwb-errors.md).
+
+    ``gaussian`` (what a config without this table gets): core N(0, sensors.uwb.sigma_m), faults as
+    configured (``faults.interference`` is the paper's long, large interference). ``realistic``: the
+    statistics of public two-way-ranging recordings (MILUV, MURP, UTIL): a heavy-tailed zero-mean core
+    (Student-t, labelled clean) plus short NLOS episodes with a positive bias (labelled faulty,
+    FaultKind.INTERFERENCE); it replaces ``faults.interference``, which must then be disabled.
+    """
+
+    model: Literal["gaussian", "realistic"] = Field(
+        "gaussian", description="UWB ranging error model: 'gaussian' (legacy) or 'realistic'")
+    core_dof: float = Field(
+        3.0, gt=2.0, le=1000.0,
+        description="realistic: degrees of freedom ν of the Student-t core (dimensionless); the core is scaled "
+                    "so its robust spread (1.4826·MAD) equals sensors.uwb.sigma_m; std/spread = 1.53 at ν = 3")
+    nlos_fraction: float = Field(
+        0.03, ge=0.0, lt=1.0,
+        description="realistic: share of link time inside an NLOS episode (= expected share of ranges, dimensionless)")
+    nlos_mean_duration_s: PositiveFloat = Field(
+        0.5, description="realistic: mean length of an NLOS episode, s (exponential; continuous time, "
+                         "independent of the epoch length)")
+    nlos_bias_m: Range2 = Field(
+        (0.5, 1.9), description="realistic: support [lo, hi] of the per-episode NLOS bias, m (positive: NLOS "
+                                "lengthens the path)")
+    nlos_bias_median_m: PositiveFloat = Field(
+        0.75, description="realistic: median of the per-episode NLOS bias, m (a truncated exponential on "
+                          "nlos_bias_m with this median)")
+
+    @model_validator(mode="after")
+    def _check(self) -> "UwbErrorModel":
+        lo, hi = self.nlos_bias_m
+        if not 0.0 <= lo < hi:
+            raise ValueError(f"nlos_bias_m: need 0 <= lo < hi, got {self.nlos_bias_m}")
+        if not lo < self.nlos_bias_median_m < hi:
+            raise ValueError(f"nlos_bias_median_m {self.nlos_bias_median_m} must lie inside nlos_bias_m {self.nlos_bias_m}")
+        if self.nlos_bias_median_m >= (lo + hi) / 2:
+            raise ValueError("nlos_bias_median_m must be below the middle of nlos_bias_m (a right-skewed bias: "
+                             "a truncated exponential cannot have a larger median)")
+        return self
+
+
 class Faults(_Model):
     interference: Interference = Interference(enabled=False)
     module_failure: list[ModuleFailure] = Field(default_factory=list)
@@ -193,9 +235,15 @@ class Faults(_Model):
     drift: list[Drift] = Field(default_factory=list)
     gnss_outage: list[GnssOutage] = Field(default_factory=list)
     process_kill: list[ProcessKill] = Field(default_factory=list)
+    # None (no [faults.uwb] table) = the gaussian model; kept out of to_dict() then, so configs
+    # written before this field existed hash and simulate exactly as before
+    uwb: UwbErrorModel | None = None
 
     @model_validator(mode="after")
     def _windows(self) -> "Faults":
+        if self.uwb is not None and self.uwb.model == "realistic" and self.interference.enabled:
+            raise ValueError("uwb.model = 'realistic' replaces the interference fault: set "
+                             "[faults.interference] enabled = false")
         for name in ("module_failure", "stuck", "drift", "gnss_outage"):
             for i, w in enumerate(getattr(self, name)):
                 if w.end_s <= w.start_s:
@@ -323,7 +371,10 @@ class Scenario(_Model):
         return list(range(1, self.swarm.n_uavs + 1))
 
     def to_dict(self) -> dict:
-        return self.model_dump(mode="json")
+        d = self.model_dump(mode="json")
+        if d["faults"].get("uwb") is None:  # no [faults.uwb]: the dict (and sha256) of older configs
+            d["faults"].pop("uwb", None)
+        return d
 
     def sha256(self) -> str:
         return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()

@@ -121,8 +121,113 @@ class UwbResult:
     interfered: np.ndarray  # (K,P) bool
 
 
+# -- realistic UWB errors (``[faults.uwb] model = "realistic"``, docs/uwb-errors.md) ---------------
+
+
+def student_t_q75(dof: float) -> float:
+    """Upper quartile t_ν⁻¹(0.75) of the standard Student-t: bisection on ∫₀^q density = 1/4
+    (composite Simpson, 2000 intervals; agrees with scipy's stdtrit to 1e-10 without importing it)."""
+    from math import lgamma, log, pi
+
+    c = lgamma((dof + 1) / 2) - lgamma(dof / 2) - 0.5 * log(dof * pi)
+    x = np.linspace(0.0, 1.0, 2001)
+
+    def mass(q):
+        xs = q * x
+        f = np.exp(c - (dof + 1) / 2 * np.log1p(xs * xs / dof))
+        h = q / 2000
+        return float(h / 3 * (f[0] + f[-1] + 4 * f[1:-1:2].sum() + 2 * f[2:-1:2].sum()))
+
+    lo, hi = 0.0, 2.0
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if mass(mid) < 0.25 else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def student_t_spread_scale(dof: float) -> float:
+    """Factor c with robust spread (1.4826·MAD) of c·t_ν = 1: c = 1 / (1.4826 · t_ν⁻¹(0.75))."""
+    return 1.0 / (1.482602218505602 * student_t_q75(dof))
+
+
+def truncexp_scale(lo: float, hi: float, median: float) -> float:
+    """Scale λ (m) of the exponential truncated to [lo, hi] whose median is ``median``
+    (lo < median < (lo + hi)/2; bisection on the median, which grows with λ)."""
+    w, m = hi - lo, median - lo
+
+    def med(lam):
+        return -lam * np.log(1.0 - 0.5 * (1.0 - np.exp(-w / lam)))
+
+    a, b = 1e-6 * w, 1e6 * w
+    for _ in range(200):
+        c = np.sqrt(a * b)
+        if med(c) < m:
+            a = c
+        else:
+            b = c
+    return float(np.sqrt(a * b))
+
+
+def truncexp_draw(u: np.ndarray, lo: float, hi: float, lam: float) -> np.ndarray:
+    """Inverse CDF of the exponential of scale ``lam`` truncated to [lo, hi] at uniforms ``u``."""
+    return lo - lam * np.log(1.0 - u * (1.0 - np.exp(-(hi - lo) / lam)))
+
+
+def nlos_episodes(t0: float, t1: float, fraction: float, mean_s: float, rng: np.random.Generator):
+    """One link's NLOS episodes over [t0, t1]: an alternating renewal process in continuous time,
+    on-times ~ Exp(mean_s), off-times ~ Exp(mean_s (1 − f)/f), so the long-run share of time inside
+    an episode is f; stationary start (in an episode with probability f, memoryless residual).
+    Returns (starts, ends) of the episodes, sorted; draws a fixed pattern from ``rng`` (one
+    ``random()`` for the initial state, then blocks of 64 on/off pairs until past t1)."""
+    mean_off = mean_s * (1.0 - fraction) / fraction
+    on = bool(rng.random() < fraction)
+    starts, ends = [], []
+    tc = t0
+    while tc <= t1:
+        d_on = rng.exponential(mean_s, 64)
+        d_off = rng.exponential(mean_off, 64)
+        first, second = (d_on, d_off) if on else (d_off, d_on)
+        seq = np.empty(128)
+        seq[0::2], seq[1::2] = first, second
+        edges = tc + np.concatenate([[0.0], np.cumsum(seq)])
+        on_idx = np.arange(0 if on else 1, 128, 2)
+        starts.append(edges[on_idx])
+        ends.append(edges[on_idx + 1])
+        tc = edges[-1]
+    return np.concatenate(starts), np.concatenate(ends)
+
+
+def realistic_uwb_errors(fm, sigma: float, t: np.ndarray, t0: float, P: int, n: np.ndarray,
+                         rng_tail: np.random.Generator, rng_nlos: np.random.Generator):
+    """(core noise (K,P) m, NLOS mask (K,P), NLOS bias (K,P) m) of the realistic model.
+
+    Core: σ·c_ν·n/√(χ²_ν/ν), a Student-t of robust spread σ (n: the standard normals of the
+    gaussian model, so the two models share their noise draws). NLOS: per link an episode process
+    (:func:`nlos_episodes`), one bias per episode from the truncated exponential on ``nlos_bias_m``
+    with median ``nlos_bias_median_m``; a range taken at t is NLOS when t lies inside an episode.
+    """
+    K = len(t)
+    nu = float(fm.core_dof)
+    chi = rng_tail.chisquare(nu, (K, P))
+    core = sigma * student_t_spread_scale(nu) * n / np.sqrt(chi / nu)
+    mask = np.zeros((K, P), bool)
+    bias = np.zeros((K, P))
+    if fm.nlos_fraction > 0 and K:
+        lo, hi = fm.nlos_bias_m
+        lam = truncexp_scale(lo, hi, fm.nlos_bias_median_m)
+        for j in range(P):
+            st, en = nlos_episodes(t0, float(t[-1]), fm.nlos_fraction, fm.nlos_mean_duration_s, rng_nlos)
+            b = truncexp_draw(rng_nlos.random(len(st)), lo, hi, lam)
+            i = np.searchsorted(st, t, side="right") - 1
+            ok = i >= 0
+            ok[ok] = t[ok] < en[i[ok]]
+            mask[:, j] = ok
+            bias[ok, j] = b[i[ok]]
+    return core, mask, bias
+
+
 def simulate_uwb(sc: Scenario, t: np.ndarray, pos: np.ndarray, rng_bias, rng_noise, rng_loss,
-                 rng_intf, rng_fail) -> UwbResult:
+                 rng_intf, rng_fail, rng_tail=None, rng_nlos=None, t0: float = 0.0) -> UwbResult:
     """Two-way ranges at epoch times t (K,) from ENU positions pos (K,U,3).
 
     Nominal: d + b_link + σ n, b_link ~ N(0, link_bias_sigma) per link. Faults (DESIGN.md §3),
@@ -136,6 +241,12 @@ def simulate_uwb(sc: Scenario, t: np.ndarray, pos: np.ndarray, rng_bias, rng_noi
         >= start_s; err = repeated value − (d + b_link + σ n) now.
     Label precedence (kind of a link-epoch with several): stuck > failure > drift > interference;
     ``err`` is always the total. Windows are closed [start_s, end_s].
+
+    ``faults.uwb.model = "realistic"`` (docs/uwb-errors.md; needs ``rng_tail``, ``rng_nlos`` and
+    the process start ``t0``): the core σ n becomes a Student-t of robust spread σ (nominal: never
+    a fault, err 0), and fault 1 is replaced by short NLOS episodes (:func:`realistic_uwb_errors`):
+    err = the episode's bias, kind INTERFERENCE, ``interfered`` = the NLOS mask. Without a
+    ``[faults.uwb]`` table nothing here changes (same draws, same bytes).
     """
     uw = sc.sensors.uwb
     K, U = pos.shape[0], pos.shape[1]
@@ -144,13 +255,21 @@ def simulate_uwb(sc: Scenario, t: np.ndarray, pos: np.ndarray, rng_bias, rng_noi
     d = np.linalg.norm(pos[:, ia] - pos[:, ib], axis=-1)
     bias = rng_bias.normal(0.0, uw.link_bias_sigma_m, P)
     n = rng_noise.normal(0.0, 1.0, (K, P))
-    nominal = d + bias + uw.sigma_m * n
+    fm = sc.faults.uwb
+    realistic = fm is not None and fm.model == "realistic"
     err = np.zeros((K, P))
     kind = np.zeros((K, P), np.int64)
-
     intf = np.zeros((K, P), bool)
+    if realistic:
+        core, intf, b_nlos = realistic_uwb_errors(fm, uw.sigma_m, t, t0, P, n, rng_tail, rng_nlos)
+        nominal = d + bias + core
+        err += np.where(intf, b_nlos, 0.0)
+        kind[intf] = FaultKind.INTERFERENCE
+    else:
+        nominal = d + bias + uw.sigma_m * n
+
     fi = sc.faults.interference
-    if fi.enabled and fi.time_fraction > 0:
+    if fi.enabled and fi.time_fraction > 0 and not realistic:
         dtk = np.diff(t, prepend=t[0] - sc.scenario.epoch_dt_s)
         p_exit_base = 1.0 / fi.mean_dwell_s
         frac = fi.time_fraction

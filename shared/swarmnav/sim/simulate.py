@@ -25,6 +25,7 @@ from .trajectory import Truth, draw_wander, formation_offsets, simulate_truth
 
 # stream ids (never reuse or renumber: datasets of a seed must stay the same)
 S_FORMATION, S_WANDER, S_IMU, S_GNSS, S_UWB_BIAS, S_UWB_NOISE, S_UWB_LOSS, S_UWB_INTF, S_UWB_FAIL, S_REL = range(1, 11)
+S_UWB_TAIL, S_UWB_NLOS = 11, 12  # realistic UWB model only ([faults.uwb], docs/uwb-errors.md)
 
 
 def _rng(seed: int, *stream: int) -> np.random.Generator:
@@ -133,7 +134,8 @@ def simulate_full(sc: Scenario, seed: int | None = None) -> SimResult:
     tk = te[1:]
     pk = pe[1:]
     uwb = simulate_uwb(sc, tk, pk, _rng(seed, S_UWB_BIAS), _rng(seed, S_UWB_NOISE), _rng(seed, S_UWB_LOSS),
-                       _rng(seed, S_UWB_INTF), _rng(seed, S_UWB_FAIL))
+                       _rng(seed, S_UWB_INTF), _rng(seed, S_UWB_FAIL), _rng(seed, S_UWB_TAIL),
+                       _rng(seed, S_UWB_NLOS), t0=float(te[0]))
     ia, ib = pairs(U)
     kk, jj = np.nonzero(uwb.keep)  # row-major: sorted by (t, a, b)
     sigma = sc.sensors.uwb.sigma_m
