@@ -85,7 +85,7 @@ def _in_process_dropout(dataset, uav, t_kill, t_restart):
     part in epochs with t_kill <= t < t_restart; before the first epoch with t >= t_restart it is
     rebuilt from the sensor-sim's restart alignment and bootstrapped from its peers' last states."""
     from services.sensor_sim.sim import restart_initial_state
-    from swarmnav.dataset import Dataset, EpochSlicer
+    from swarmnav.dataset import Dataset, EpochSlicer, node_view
     from swarmnav.estimators import registry
     from swarmnav.evaluation import truth_at_epochs
     from swarmnav.initial import initial_states
@@ -96,13 +96,14 @@ def _in_process_dropout(dataset, uav, t_kill, t_restart):
     st = registry.settings_for_dataset(meta)
     rounds, tol = int(st.get("rounds", 3)), float(st.get("convergence_m", 0.0))
     inits, tr, sl = initial_states(ds, 1), truth_at_epochs(ds), EpochSlicer(ds)
-    nodes = {u: registry.make_node(ALGO, u, meta, st, inits[u]) for u in uavs}
+    nmeta = node_view(meta)  # what the sensor-sim's meta answer gives a node
+    nodes = {u: registry.make_node(ALGO, u, nmeta, st, inits[u]) for u in uavs}
     last, pos, restarted = {}, np.full((K, len(uavs), 3), np.nan), False
     for k in range(1, K + 1):
         t = meta.epoch_time(k)
         if t >= t_restart and not restarted:
             restarted = True
-            nodes[uav] = registry.make_node(ALGO, uav, meta, st, restart_initial_state(tr, inits, uavs, 1, uav, k))
+            nodes[uav] = registry.make_node(ALGO, uav, nmeta, st, restart_initial_state(tr, inits, uavs, 1, uav, k))
             inp = sl.epoch(k, uav)
             nodes[uav].bootstrap(inp.t_prev, {u: s for u, s in sorted(last.items()) if u != uav}, inp)
         part = [u for u in uavs if u != uav or not (t_kill <= t < t_restart)]

@@ -3,7 +3,8 @@
 For every epoch k and every participating UAV it publishes the EpochInput the in-process run
 would build (``EpochSlicer.epoch(k, uav)``), as one binary frame on ``uav/<id>/input`` (with the epoch's participants = the UAV nodes live
 when the epoch opens). Truth goes to ``truth/<id>``, which nodes never subscribe to. It also
-answers ``meta`` (the dataset meta + seed) and ``uav/<id>/init`` (initial knowledge from
+answers ``meta`` (the dataset meta as a UAV may know it, ``dataset.node_view``: no fault, outage
+or kill schedule; + the run seed) and ``uav/<id>/init`` (initial knowledge from
 ``initial_states(ds, seed)``; with ``?restart=1`` a fresh coarse alignment at the current epoch).
 
 Clocks: ``lockstep`` (default) opens epoch k+1 once every participant of epoch k has published
@@ -23,7 +24,7 @@ import numpy as np
 
 from deploy.service import Deadline, Inbox, finish_process, install_signals, parse_key, setup_logging, undeclare_all
 from deploy.zconf import client_config
-from swarmnav.dataset import Dataset, EpochSlicer
+from swarmnav.dataset import Dataset, EpochSlicer, node_view
 from swarmnav.evaluation import truth_at_epochs
 from swarmnav.geometry import quat_from_rotvec, quat_mul
 from swarmnav.estimators.base import InitialState
@@ -100,7 +101,9 @@ class SensorSim:
         self.estimates: dict[int, set[int]] = {}
         self.k = 0
         self.bytes_per_uav = 0
-        self.meta_msg = M.MetaMsg(run=self.run, seed=args.seed, meta=self.meta.model_dump(mode="json", by_alias=True)).encode()
+        # nodes get what a real UAV knows: no fault windows, GNSS outages or kill schedule (node_view)
+        self.meta_msg = M.MetaMsg(run=self.run, seed=args.seed,
+                                  meta=node_view(self.meta).model_dump(mode="json", by_alias=True)).encode()
 
     def setup(self):
         ib = self.inbox

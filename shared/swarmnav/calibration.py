@@ -15,7 +15,7 @@ import numpy as np
 
 import dataclasses
 
-from .dataset import Dataset, EpochSlicer, epoch_of
+from .dataset import Dataset, EpochSlicer, epoch_of, node_view
 from .geometry import quat_to_matrix
 from .initial import initial_states
 
@@ -39,7 +39,7 @@ def train_delta_l(ds: Dataset, seed: int, settings: dict, warmup_s: float = 20.0
     inits = initial_states(ds, seed)
     st = dict(settings)
     st["rounds"] = rounds
-    nodes = {u: FgEstimator(u, meta, st, inits[u]) for u in uavs}
+    nodes = {u: FgEstimator(u, node_view(meta), st, inits[u]) for u in uavs}  # what a UAV knows
     k_end = min(meta.n_epochs(), int(round((warmup_s + window_s) / meta.epoch_dt_s)))
     k_start = int(round(warmup_s / meta.epoch_dt_s)) + 1
     res_all = []

@@ -184,6 +184,24 @@ class DatasetMeta(_M):
         return thr
 
 
+def node_view(meta: DatasetMeta) -> DatasetMeta:
+    """The meta a UAV node gets (the sensor-sim's ``meta`` answer; in-process, every per-UAV
+    estimator): what a real UAV knows before take-off and nothing of the scenario's schedule.
+
+    Kept: ids, kinds and roles of the nodes, their sensor noise specs and lever arms, anchor
+    positions, origin, Earth model, epoch length and span, the nominal ranging σ and the scoring
+    threshold derived from it, the initial-knowledge sigmas, ``config_sha256`` (provenance) and the
+    estimator settings (``config["estimation"]``, read by ``registry.settings_for_dataset``).
+    Dropped: ``gnss_outages`` (outage windows), ``events`` (kill/restart schedule), the rest of
+    ``config`` (fault windows, NLOS/interference parameters, outages, kills, trajectory, the
+    simulator's sensor specs) and ``seed`` (with the config it would regenerate the whole run,
+    truth included). Scoring (evaluate, the monitor) reads labels and truth from the dataset."""
+    est = (meta.config or {}).get("estimation")
+    return meta.model_copy(deep=True, update={
+        "config": {"estimation": est} if est is not None else None,
+        "gnss_outages": [], "events": [], "seed": None})
+
+
 Table = dict[str, np.ndarray]
 
 

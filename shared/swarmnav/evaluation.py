@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .dataset import Dataset, EpochSlicer, epoch_of
+from .dataset import Dataset, EpochSlicer, epoch_of, node_view
 from .estimators import registry
 from .estimators.base import NodeEstimate
 from .initial import initial_states
@@ -144,7 +144,9 @@ def run_algorithm(ds: Dataset, algo: str, seed: int, settings: dict,
             if progress:
                 progress(k, K)
     else:
-        nodes = {u: registry.make_node(algo, u, meta, settings, inits[u]) for u in uavs}
+        # the meta a node of the deployment gets from the sensor-sim: no fault/outage/kill schedule
+        nmeta = node_view(meta)
+        nodes = {u: registry.make_node(algo, u, nmeta, settings, inits[u]) for u in uavs}
         for k in range(1, K + 1):
             gens = {u: node_epoch(nodes[u], slicer.epoch(k, u), rounds, tol) for u in uavs}
             out = run_epoch_in_process(gens)
