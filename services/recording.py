@@ -200,13 +200,14 @@ class ViewSpec:
     trail: bool = False  # 3-D: the last TRAIL_S seconds instead of the latest position
 
 
-def blueprint_views(algos: list[str], link_algos: list[str] | None = None) -> list[ViewSpec]:
+def blueprint_views(algos: list[str], link_algos: list[str] | None = None, anchors: bool = False) -> list[ViewSpec]:
     """The default layout: the swarm now (labelled) and with 30 s trails, link classes per
-    algorithm, error series with the estimator's own 3σ bound, link classes per epoch, events."""
+    algorithm (with the fixed UWB anchors when the data has any), error series with the
+    estimator's own 3σ bound, link classes per epoch, events."""
     link_algos = list(algos if link_algos is None else link_algos)
     v = [ViewSpec("3d", "swarm now: truth (grey) vs estimates, labelled", ("/swarm/**", "/labels/**"), "Points3D:positions"),
          ViewSpec("3d", f"last {TRAIL_S:g} s: truth (grey) vs estimates", ("/swarm/**",), "Points3D:positions", trail=True)]
-    v += [ViewSpec("3d", f"links {a}: H2 normal / H1 interfered / H0 failed", (links_path(a), "/swarm/truth/**", "/swarm/anchors"),
+    v += [ViewSpec("3d", f"links {a}: H2 normal / H1 interfered / H0 failed", (links_path(a), "/swarm/truth/**") + (("/swarm/anchors",) if anchors else ()),
                    "LineStrips3D:strips") for a in link_algos]
     ts = [("swarm 3-D position error and 3σ bound (m)", ("pos_3d", "pos_3sigma"), "swarm"),
           ("UAV 1 3-D position error and 3σ bound (m)", ("pos_3d", "pos_3sigma"), "uav1"),
@@ -220,7 +221,19 @@ def blueprint_views(algos: list[str], link_algos: list[str] | None = None) -> li
     return v
 
 
-def default_blueprint(algos: list[str], link_algos: list[str] | None = None) -> rrb.Blueprint:
+def dataset_has_anchors(dataset_dir) -> bool:
+    """Whether a dataset directory's meta.json lists fixed UWB anchors (they get drawn)."""
+    import json
+    from pathlib import Path
+
+    try:
+        meta = json.loads((Path(dataset_dir) / "meta.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return any(n.get("kind") == "anchor" for n in meta.get("nodes", []))
+
+
+def default_blueprint(algos: list[str], link_algos: list[str] | None = None, anchors: bool = False) -> rrb.Blueprint:
     """The blueprint built from :func:`blueprint_views`: 3-D views left, series and events right."""
     trail = rrb.VisibleTimeRange(TIMELINE_T, start=rrb.TimeRangeBoundary.cursor_relative(seconds=-TRAIL_S),
                                  end=rrb.TimeRangeBoundary.cursor_relative(seconds=0.0))
@@ -233,7 +246,7 @@ def default_blueprint(algos: list[str], link_algos: list[str] | None = None) -> 
             return rrb.TimeSeriesView(origin="/", contents=list(spec.contents), name=spec.name)
         return rrb.TextLogView(origin="/", contents=list(spec.contents), name=spec.name)
 
-    views = blueprint_views(algos, link_algos)
+    views = blueprint_views(algos, link_algos, anchors)
     spatial = [view(x) for x in views if x.kind == "3d"]
     right = [view(x) for x in views if x.kind != "3d"]
     return rrb.Blueprint(

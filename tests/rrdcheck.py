@@ -28,13 +28,16 @@ def matches(query: str, entity: str) -> bool:
 
 
 def view_problems(views, rows, static) -> list[str]:
-    """Every view must match at least one entity with data of its kind; queries use no `*` but a
-    trailing `/**`; every series that has a name has data."""
+    """Every view must match at least one entity with data of its kind; every query matches some
+    entity; queries use no `*` but a trailing `/**`; every series that has a name has data."""
     probs = []
     for v in views:
         for q in v.contents:
             if "*" in (q[:-3] if q.endswith("/**") else q):
                 probs.append(f"{v.name}: query {q!r} uses '*' other than a trailing '/**'")
+        for q in v.contents:
+            if not any(matches(q, e) for e in set(rows) | set(static)):
+                probs.append(f"{v.name}: query {q!r} matches no entity of the recording")
         hit = [e for e in rows if any(matches(q, e) for q in v.contents) and rows[e].get(v.data, 0) > 0]
         if not hit:
             probs.append(f"view {v.name!r} ({', '.join(v.contents)}): no entity with {v.data} data")

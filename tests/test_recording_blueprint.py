@@ -50,4 +50,5 @@ def test_the_checker_catches_an_empty_view():
     bad = [R.ViewSpec("timeseries", "wildcard", ("/errors/*/pos_3d/swarm",), "Scalars:scalars")]
     rows = {"/errors/atvfg/pos_3d/swarm": {"Scalars:scalars": 3}}
     probs = rrdcheck.view_problems(bad, rows, {"/errors/x": {"SeriesLines:names"}})
-    assert len(probs) == 3, probs  # the '*' query, the view without data, the named series without data
+    # the '*' query (matching nothing, too), the view without data, the named series without data
+    assert len(probs) == 4, probs

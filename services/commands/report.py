@@ -50,7 +50,8 @@ def rebuild(run_dir: Path) -> dict:
     from services.monitor.core import LINK_ALGOS
 
     sink = R.FileRecording(tmp, recording_id=h["run"],
-                           blueprint=R.default_blueprint([h["algo"]], [h["algo"]] if h["algo"] in LINK_ALGOS else []))
+                           blueprint=R.default_blueprint([h["algo"]], [h["algo"]] if h["algo"] in LINK_ALGOS else [],
+                                                         R.dataset_has_anchors(ds)))
     core = MonitorCore(run=h["run"], dataset=ds, seed=h["seed"], algo=h["algo"], out=run_dir, sink=sink,
                        kills=h.get("kills", []), restarts=h.get("restarts", []), security=h.get("security"),
                        config_sha256=h.get("config_sha256"))

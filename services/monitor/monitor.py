@@ -75,7 +75,8 @@ class Monitor:
             host, _, port = args.live.rpartition(":")
             live = (host or "127.0.0.1", int(port))
         sink = R.SegmentedRecording(out / "recording", out / "swarm.rrd", recording_id=args.run, live=live,
-                                    blueprint=R.default_blueprint([args.algo], [args.algo] if args.algo in LINK_ALGOS else []))
+                                    blueprint=R.default_blueprint([args.algo], [args.algo] if args.algo in LINK_ALGOS else [],
+                                                                  R.dataset_has_anchors(args.dataset)))
         self.core = MonitorCore(run=args.run, dataset=Path(args.dataset), seed=args.seed, algo=args.algo, out=out, sink=sink,
                                 kills=args.kill, restarts=args.restart, security=header["security"],
                                 config_sha256=args.config_sha256, journal=jr, log=log)
