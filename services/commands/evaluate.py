@@ -411,7 +411,7 @@ def _write_rrd(path: Path, res0: dict, truth, anchors: dict) -> None:
 
     algos = list(res0)
     link_algos = [a for a in algos if len(res0[a].links)]
-    rec = R.open_recording(path, blueprint=R.default_blueprint(algos, link_algos))
+    rec = R.open_recording(path, blueprint=R.default_blueprint(algos, link_algos, bool(anchors)))
     try:
         t = truth.t
         k = np.arange(1, len(t) + 1)
