@@ -53,3 +53,10 @@ def test_bad_input_is_refused_before_any_work(tmp_path, args, says):
     assert says in r.stderr and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert r.stderr.startswith(f"swarmnav {args[0]}: error: "), r.stderr
     assert not out.exists()
+
+
+@pytest.mark.parametrize("cmd", ["simulate", "evaluate", "launch", "calibrate", "import-miluv", "report", "keys"])
+def test_every_subcommand_help_has_examples(cmd):
+    r = subprocess.run([sys.executable, "-m", "services.cli", cmd, "--help"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and "example" in r.stdout and f"swarmnav {cmd} " in r.stdout.split("example", 1)[1], r.stdout
+    assert "Thin adapter" not in r.stdout and "``" not in r.stdout  # no internals, no RST markup

@@ -12,6 +12,11 @@ UAV N = robot ifo00N; anchor k = static node 100+k at its surveyed position. Loc
 Vicon world frame (x->E, y->N, z->U), no geodetic origin, no GNSS. IMU = imu_px4.csv (body FLU,
 every sample kept). Ranges = uwb_range.csv of all robots, deduplicated; sigma = the row's std;
 fault label NLOS_REAL where |bias| > 3 std. Truth = mocap. See docs/miluv.md.
+
+examples:
+  swarmnav import-miluv ../shared/data/miluv/cirObstacles_3_random_0 --out runs/miluv-dataset
+  swarmnav import-miluv SRC --out runs/miluv-dataset --estimation configs/miluv.toml   # estimator settings with it
+  swarmnav evaluate --dataset runs/miluv-dataset --algos atvfg,fg,central --seeds 0  # then evaluate it
 """
 
 
