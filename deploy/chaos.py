@@ -298,7 +298,7 @@ def _router(cfg: Path, ep: str, log: Path) -> subprocess.Popen:
 
 def _bounce_router(routers: list, cfg: Path, ep: str, run: str, alive, notes: dict, log: Path) -> None:
     """At epoch 20 (plain client session on the run's clock) SIGKILL the router, restart it 2 s later."""
-    from deploy.zconf import client_config
+    from services.runtime.zconf import client_config
 
     clock = None
     try:
@@ -321,7 +321,7 @@ def _bounce_router(routers: list, cfg: Path, ep: str, run: str, alive, notes: di
 def run_router_restart(out: Path, seed: int) -> tuple[int | None, float, dict, Path, Path]:
     """The services by hand on a standalone router, which is SIGKILLed at epoch 20 and restarted on
     the same port 2 s later; every service must then end by itself (bounded SERVICE_WAIT_S)."""
-    from deploy.zconf import free_port
+    from services.runtime.zconf import free_port
 
     d, notes = out / "router-restart", {}
     (d / "logs").mkdir(parents=True, exist_ok=True)

@@ -5,7 +5,7 @@ scouting off) and starts the monitor, N uav_node processes and the sensor-sim, e
 process (``python -m services.<name>``) with its own log file under ``<run>/logs/``, OMP/BLAS
 threads = 1.
 
-Secure by default (deploy/security.py): the router listens on mutual TLS only and enforces an ACL
+Secure by default (services/runtime/security.py): the router listens on mutual TLS only and enforces an ACL
 generated from ``swarmnav.wire.keys``; every service connects with its own certificate
 (``<run>/security/<principal>.json5``). ``insecure=True`` gives a plain TCP router without ACL.
 
@@ -30,7 +30,7 @@ import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from deploy.zconf import free_port, router_config
+from services.runtime.zconf import free_port, router_config
 from swarmnav.wire import keys
 from swarmnav.wire import messages as M
 
@@ -181,7 +181,7 @@ def launch(spec: LaunchSpec) -> LaunchResult:
     import zenoh
     from tqdm import tqdm
 
-    from deploy import security
+    from services.runtime import security
 
     run_id = f"r{uuid.uuid4().hex[:10]}"
     port = free_port()

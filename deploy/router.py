@@ -25,7 +25,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     import zenoh
 
-    from deploy.zconf import router_config
+    from services.runtime.zconf import router_config
 
     conf = router_config(a.listen or None, a.config)  # the file's settings + the shared base (zconf._base)
     stop = threading.Event()

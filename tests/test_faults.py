@@ -246,7 +246,7 @@ def test_standalone_router_restart_loses_nothing(smoke, tmp_path):
     it on the same port 2 s later: every service ends by itself and nothing is missing."""
     import zenoh
 
-    from deploy.zconf import client_config
+    from services.runtime.zconf import client_config
 
     with socket.socket() as s_:
         s_.bind(("127.0.0.1", 0))
@@ -309,7 +309,7 @@ def test_standalone_services_stop_by_themselves_when_the_sensor_sim_dies(smoke, 
     gone while the router is up, stop with status 4, and the monitor writes an incomplete report."""
     import zenoh
 
-    from deploy.zconf import client_config, free_port
+    from services.runtime.zconf import client_config, free_port
 
     ep = f"tcp/127.0.0.1:{free_port()}"
     logs = tmp_path / "logs"

@@ -71,8 +71,8 @@ def test_acl_is_generated_for_every_principal_default_deny():
 
 @pytest.fixture(scope="module")
 def identities(tmp_path_factory):
-    from deploy.security import make_identities
-    from deploy.zconf import free_port
+    from services.runtime.security import make_identities
+    from services.runtime.zconf import free_port
 
     d = tmp_path_factory.mktemp("sec") / "security"
     ep = f"tls/127.0.0.1:{free_port()}"
@@ -101,7 +101,7 @@ def test_identity_files_private_and_complete(identities):
 def bus(identities):
     import zenoh
 
-    from deploy.zconf import router_config
+    from services.runtime.zconf import router_config
 
     d, ep = identities
     router = zenoh.open(router_config(None, str(d / "router.json5")))

@@ -128,7 +128,7 @@ def test_distributed_equals_in_process_with_garbage(smoke, base):
     from swarmnav.estimators import registry
     from swarmnav.evaluation import run_algorithm
 
-    from deploy.service import code_digest
+    from services.runtime.service import code_digest
 
     ds = Dataset.read(smoke)
     ref = run_algorithm(ds, ALGO, 1, registry.settings_for_dataset(ds.meta))
@@ -249,7 +249,7 @@ def test_multi_host_config_files_router_and_client(tmp_path):
 
     import zenoh
 
-    from deploy.zconf import client_config, free_port
+    from services.runtime.zconf import client_config, free_port
 
     ep = f"tcp/127.0.0.1:{free_port()}"
     env = dict(os.environ, PYTHONPATH=f"{REPO}:{REPO / 'shared'}")

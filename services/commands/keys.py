@@ -3,7 +3,7 @@
 Writes, for one run id and a list of UAVs, a fresh certificate authority's certificate, the
 router's config (TLS listen endpoint, mutual TLS required, the ACL generated from
 swarmnav.wire.keys) and one complete Zenoh client config per principal (``uav-<id>``,
-``sensor-sim``, ``monitor``, ``launcher``), every file mode 0600 (see deploy/security.py and
+``sensor-sim``, ``monitor``, ``launcher``), every file mode 0600 (see services/runtime/security.py and
 docs/deployment.md "Several hosts"). Copy each principal's file to the host that runs it, and only
 that file.
 """
@@ -49,7 +49,7 @@ def check_host(host: str) -> None:
 
 
 def run(args) -> int:
-    from deploy.security import make_identities
+    from services.runtime.security import make_identities
     from swarmnav.errors import SwarmnavError
     from services.commands.evaluate import parse_seeds
     from swarmnav.wire import keys as K

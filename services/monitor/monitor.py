@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from deploy.service import Inbox, finish_process, install_signals, parse_key, setup_logging, undeclare_all
-from deploy.zconf import client_config
+from services.runtime.service import Inbox, finish_process, install_signals, parse_key, setup_logging, undeclare_all
+from services.runtime.zconf import client_config
 from services.monitor import journal as J
 from services.monitor.core import MonitorCore
 from swarmnav.wire import keys

@@ -22,8 +22,8 @@ import time
 
 import numpy as np
 
-from deploy.service import Deadline, Inbox, finish_process, install_signals, parse_key, setup_logging, undeclare_all
-from deploy.zconf import client_config
+from services.runtime.service import Deadline, Inbox, finish_process, install_signals, parse_key, setup_logging, undeclare_all
+from services.runtime.zconf import client_config
 from swarmnav.dataset import Dataset, EpochSlicer, node_view
 from swarmnav.evaluation import truth_at_epochs
 from swarmnav.geometry import quat_from_rotvec, quat_mul

@@ -21,9 +21,9 @@ import os
 import time
 from collections import deque
 
-from deploy.service import (Deadline, Inbox, code_digest, finish_process, install_signals, parse_key, setup_logging,
+from services.runtime.service import (Deadline, Inbox, code_digest, finish_process, install_signals, parse_key, setup_logging,
                             undeclare_all)
-from deploy.zconf import client_config
+from services.runtime.zconf import client_config
 from swarmnav.dataset import DatasetMeta
 from swarmnav.estimators import registry
 from swarmnav.estimators.base import NodeState

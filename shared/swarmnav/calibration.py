@@ -16,15 +16,12 @@ import numpy as np
 import dataclasses
 
 from .dataset import Dataset, EpochSlicer, epoch_of, node_view
+from .estimators.detection import fallback_delta_l  # noqa: F401  (re-exported: Δl's fallback lives with detection)
 from .geometry import quat_to_matrix
 from .initial import initial_states
 
 PERCENTILE = 99.0
 ROUNDS = 50
-
-
-def fallback_delta_l(uwb_sigma_m: float, fallback_sigmas: float) -> float:
-    return float(fallback_sigmas) * float(uwb_sigma_m)
 
 
 def train_delta_l(ds: Dataset, seed: int, settings: dict, warmup_s: float = 20.0, window_s: float = 60.0,

@@ -76,6 +76,11 @@ class RangePairs:
         return np.abs(self.d - np.linalg.norm(positions[self.ia] - positions[self.ib], axis=1))
 
 
+def fallback_delta_l(uwb_sigma_m: float, fallback_sigmas: float) -> float:
+    """Δl (m) where no offline training applies: ``fallback_sigmas`` × the ranging σ (m)."""
+    return float(fallback_sigmas) * float(uwb_sigma_m)
+
+
 def residual_matrix(positions: Mapping[int, np.ndarray], ranges: Mapping[tuple[int, int], float]
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Residuals of every ranged pair whose both ends have a position.

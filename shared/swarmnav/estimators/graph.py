@@ -83,7 +83,7 @@ import numpy as np
 import gtsam
 from gtsam.symbol_shorthand import B, V, X
 
-from ..calibration import fallback_delta_l
+from .detection import fallback_delta_l
 from ..dataset import DatasetMeta, EpochInput
 from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState, tuned_settings
 from . import detection as det

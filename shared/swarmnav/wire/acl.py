@@ -1,7 +1,7 @@
 """The router's access-control list of a run, generated from :mod:`swarmnav.wire.keys` (pure: a dict).
 
 Zenoh's ``access_control`` (default deny) is enforced by the router on every client session. Each
-principal is identified by the common name of its client certificate (mutual TLS, deploy/security.py)
+principal is identified by the common name of its client certificate (mutual TLS, services/runtime/security.py)
 or by its usrpwd user name: ``uav-<id>``, ``sensor-sim``, ``monitor``, ``launcher``.
 
 Flows are the router's: *ingress* is what a principal sends to the router (its puts, declarations,

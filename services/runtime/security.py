@@ -103,9 +103,9 @@ def _write_private(path: Path, text: str) -> None:
 
 
 def _tls_config(mode: str, side: str, ca_pem: bytes, cert_pem: bytes, key_pem: bytes, **sections) -> dict:
-    """The shared shape of both configs (see deploy/zconf.py for the same base as code): mutual TLS
+    """The shared shape of both configs (see services/runtime/zconf.py for the same base as code): mutual TLS
     with the run's CA and this party's certificate/key inline; ``side`` is "connect" or "listen"."""
-    from deploy.zconf import LEASE_MS
+    from services.runtime.zconf import LEASE_MS
 
     tls = {"root_ca_certificate_base64": _b64(ca_pem), f"{side}_certificate_base64": _b64(cert_pem),
            f"{side}_private_key_base64": _b64(key_pem), "enable_mtls": True}
@@ -117,7 +117,7 @@ def _tls_config(mode: str, side: str, ca_pem: bytes, cert_pem: bytes, key_pem: b
 
 def client_config_dict(endpoint: str, ca_pem: bytes, cert_pem: bytes, key_pem: bytes) -> dict:
     """A complete client config of one principal."""
-    from deploy.zconf import RETRY
+    from services.runtime.zconf import RETRY
 
     return _tls_config("client", "connect", ca_pem, cert_pem, key_pem,
                        connect={"endpoints": [endpoint], "timeout_ms": -1, "retry": RETRY}, listen={"endpoints": []})
@@ -169,7 +169,7 @@ class RunSecurity:
         return None if self.dir is None else self.dir / f"{principal}.json5"
 
     def router_config(self):
-        from deploy.zconf import router_config
+        from services.runtime.zconf import router_config
 
         if self.dir is None:
             return router_config([self.endpoint])
