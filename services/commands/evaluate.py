@@ -108,6 +108,9 @@ def add_arguments(p):
     p.add_argument("--algos", default=ALL_ALGOS, help=f"comma-separated algorithms (default {ALL_ALGOS})")
     p.add_argument("--seeds", default=None, help="seeds: 1-5, 1,3,7 or mixes, or 'report' / 'tuning' (the config's "
                    "[evaluation] report_seeds / tuning_seeds; default: the config's / dataset's seed)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="set",
+                   help="override a config field before validation (repeatable), e.g. --set swarm.n_uavs=100 "
+                        "--set scenario.duration_s=60 (configs/scale.toml is made for this)")
     p.add_argument("--out", default="runs/evaluate", help="output directory (default runs/evaluate)")
     p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes (default 2)")
     p.add_argument("--no-rrd", action="store_true", help="skip the Rerun recording")
@@ -151,11 +154,11 @@ def _run_task(task):
 
 
 def _simulate(args_tuple):
-    cfg_path, seed = args_tuple
+    cfg_path, seed, overrides = args_tuple
     from swarmnav.config import load_config
     from swarmnav.sim import simulate
 
-    return seed, simulate(load_config(cfg_path), seed)
+    return seed, simulate(load_config(cfg_path, overrides), seed)
 
 
 # -- main ---------------------------------------------------------------------------------------
@@ -179,12 +182,16 @@ def _load_inputs(args):
         from swarmnav.config import load_config
 
         cfg_path = Path(args.config)
-        sc = load_config(cfg_path)
+        sc = load_config(cfg_path, args.set)
         seeds = config_seeds(args.seeds, sc) if args.seeds else [sc.scenario.seed]
         settings = registry.estimator_settings(sc.estimation, base_dirs=(cfg_path.resolve().parent.parent, cfg_path.resolve().parent))
         return sc.scenario.name, seeds, settings, sc.sha256(), None, cfg_path
     from services.provenance import dataset_sha256
 
+    if args.set:
+        from swarmnav.errors import ConfigError
+
+        raise ConfigError("--set overrides a config's fields: use it with --config, not --dataset")
     ds = Dataset.read(args.dataset)
     if args.seeds and args.seeds.strip() in ("report", "tuning"):
         from swarmnav.errors import ConfigError
@@ -227,7 +234,7 @@ def run(args) -> int:
             _DATASETS[s] = ds_given
     else:
         t0 = time.perf_counter()
-        todo = [(str(cfg_path), s) for s in seeds]
+        todo = [(str(cfg_path), s, list(args.set)) for s in seeds]
         if len(todo) > 1 and jobs > 1:
             with ctx.Pool(min(jobs, len(todo)), initializer=_limit_threads) as pool:
                 for s, ds in pool.imap_unordered(_simulate, todo):

@@ -30,6 +30,7 @@ examples:
   swarmnav launch --config configs/smoke.toml                       # 5 UAVs, 60 s, lockstep
   swarmnav launch --config configs/paper.toml --algo fg --seed 2    # the paper swarm with plain fg
   swarmnav launch --config configs/smoke.toml --kill 2@15 --restart 2@25 --out runs/dropout
+  swarmnav launch --config configs/scale.toml --set swarm.n_uavs=100   # 100 UAV processes, 60 s
   swarmnav launch --config configs/smoke.toml --rate 1              # real time instead of lockstep
   swarmnav launch --dataset runs/miluv-dataset --seed 0             # replay a recorded dataset
   swarmnav launch --config configs/smoke.toml --rate 1 --live       # watch it live in a Rerun viewer
@@ -59,6 +60,9 @@ def add_arguments(p):
     src.add_argument("--dataset", help="dataset directory to replay")
     p.add_argument("--algo", default="atvfg", help="estimator hosted by every node: atvfg (default), atvfg_paper, fg, fkf or ins")
     p.add_argument("--seed", type=int, default=None, help="run seed (default: the config's)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="set",
+                   help="override a config field before validation (repeatable), e.g. --set swarm.n_uavs=100 "
+                        "--set scenario.duration_s=60 (configs/scale.toml is made for this)")
     p.add_argument("--kill", type=_fault, action="append", default=[], metavar="ID@T", help="SIGKILL UAV ID's process at sim time T")
     p.add_argument("--restart", type=_fault, action="append", default=[], metavar="ID@T", help="restart UAV ID's process at sim time T")
     p.add_argument("--rate", type=float, default=None, help="real-time factor instead of lockstep")
@@ -175,7 +179,7 @@ def run(args) -> int:
         from swarmnav.config import load_config
         from swarmnav.sim import simulate
 
-        sc = load_config(args.config)
+        sc = load_config(args.config, args.set)
         seed = sc.scenario.seed if args.seed is None else args.seed
         name = sc.scenario.name
         sha = sc.sha256()
@@ -185,6 +189,8 @@ def run(args) -> int:
                 restarts.append((pk.uav, pk.restart_s))
         check_schedule(kills, restarts, sc.uav_ids(), 0.0, sc.scenario.duration_s)
     else:
+        if args.set:
+            raise SwarmnavError("--set overrides a config's fields: use it with --config, not --dataset")
         ds = Dataset.read(args.dataset)
         name = ds.meta.name
         seed = args.seed if args.seed is not None else (ds.meta.seed or 0)

@@ -22,6 +22,7 @@ The same config and seed always give byte-identical files.
 examples:
   swarmnav simulate --config configs/smoke.toml --out runs/smoke-data
   swarmnav simulate --config configs/paper.toml --seed 3 --out runs/paper-s3
+  swarmnav simulate --config configs/scale.toml --set swarm.n_uavs=300 --set scenario.duration_s=20 --out runs/scale300
 """
 
 
@@ -30,6 +31,9 @@ def add_arguments(p) -> None:
     p.add_argument("--seed", type=int, default=None, metavar="N",
                    help="run seed (>= 0); drives every random draw except UAV 1's start (default: the config's scenario.seed)")
     p.add_argument("--out", required=True, metavar="DIR", help="dataset directory to write (created; existing tables are overwritten)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="set",
+                   help="override a config field before validation (repeatable), e.g. --set swarm.n_uavs=100 "
+                        "--set scenario.duration_s=60 (configs/scale.toml is made for this)")
 
 
 def run(args) -> int:
@@ -38,7 +42,7 @@ def run(args) -> int:
     from swarmnav.sim import simulate
 
     t0 = time.perf_counter()
-    sc = load_config(args.config)
+    sc = load_config(args.config, args.set)
     if args.seed is not None and args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
     ds = simulate(sc, args.seed)

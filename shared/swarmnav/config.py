@@ -16,8 +16,10 @@ import hashlib
 import json
 import tomllib
 from pathlib import Path
-from typing import Annotated, Literal
+from types import UnionType
+from typing import Annotated, Literal, Union, get_args, get_origin
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .errors import ConfigError
@@ -46,14 +48,39 @@ class Origin(_Model):
     alt_m: float = 0.0
 
 
+MAX_UAVS = 2000  # schema cap on swarm.n_uavs (the scale family, configs/scale.toml, goes to 1,000)
+
+
 class Swarm(_Model):
-    n_uavs: int = Field(ge=2, le=64)
+    n_uavs: int = Field(ge=2, le=MAX_UAVS)
     masters: list[int] = Field(description="UAV ids (1-based) with the high-grade sensor set")
     uav1_start_enu_m: tuple[float, float, float]
     box_e_m: Range2
     box_n_m: Range2
     box_u_m: Range2
     min_separation_m: PositiveFloat = 30.0
+    # scale family (configs/scale.toml); both None = the fixed box and the explicit masters list, and
+    # then absent from to_dict(), so the configs written before these existed hash exactly as before
+    masters_every: int | None = Field(
+        None, ge=1, description="every k-th UAV is a master too: ids 1, 1+k, 1+2k, ... (valid for any n_uavs); "
+                                "merged into 'masters' on validation")
+    density_per_km3: PositiveFloat | None = Field(
+        None, description="formation density, UAVs per km^3: the start box keeps box_u_m and the centre and "
+                          "aspect of box_e_m x box_n_m, its horizontal extent scaled so that its volume is "
+                          "n_uavs / density (the box grows with n_uavs); None = the box as given")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _every(cls, data):
+        if isinstance(data, dict) and data.get("masters_every") is not None:
+            try:
+                k, n = int(data["masters_every"]), int(data["n_uavs"])
+                listed = [int(m) for m in data.get("masters") or []]
+            except (KeyError, TypeError, ValueError):
+                return data  # the field validators name the problem
+            if k >= 1:
+                data = {**data, "masters": sorted(set(listed) | set(range(1, n + 1, k)))}
+        return data
 
     @model_validator(mode="after")
     def _check(self) -> "Swarm":
@@ -64,7 +91,27 @@ class Swarm(_Model):
             lo, hi = getattr(self, name)
             if lo >= hi:
                 raise ValueError(f"{name}: lower bound {lo} must be below upper bound {hi}")
+        if self.density_per_km3 is not None:
+            # random sequential placement jams near a 38 % volume fraction of the min-separation
+            # spheres; refuse above 25 % (it would spin through 20,000 draws per UAV and fail)
+            lo, hi = self.formation_box()
+            frac = self.n_uavs * (np.pi / 6.0) * self.min_separation_m**3 / float(np.prod(hi - lo))
+            if frac > 0.25:
+                raise ValueError(f"density_per_km3 {self.density_per_km3:g} is too dense for min_separation_m "
+                                 f"{self.min_separation_m:g} (spheres fill {frac:.0%} of the box; at most 25 %)")
         return self
+
+    def formation_box(self) -> tuple["np.ndarray", "np.ndarray"]:
+        """(lo, hi) ENU corners of the box the formation is drawn in (see ``density_per_km3``)."""
+        lo = np.array([self.box_e_m[0], self.box_n_m[0], self.box_u_m[0]], float)
+        hi = np.array([self.box_e_m[1], self.box_n_m[1], self.box_u_m[1]], float)
+        if self.density_per_km3 is None:
+            return lo, hi
+        vol = self.n_uavs / self.density_per_km3 * 1e9  # m^3
+        f = np.sqrt(vol / float(np.prod(hi - lo)))
+        mid, half = (lo + hi) / 2.0, (hi - lo) / 2.0
+        half[:2] *= f
+        return mid - half, mid + half
 
     def role(self, uav: int) -> Literal["master", "slave"]:
         return "master" if uav in self.masters else "slave"
@@ -374,6 +421,9 @@ class Scenario(_Model):
         d = self.model_dump(mode="json")
         if d["faults"].get("uwb") is None:  # no [faults.uwb]: the dict (and sha256) of older configs
             d["faults"].pop("uwb", None)
+        for k in ("masters_every", "density_per_km3"):  # the scale family's options, when unset
+            if d["swarm"].get(k) is None:
+                d["swarm"].pop(k, None)
         return d
 
     def sha256(self) -> str:
@@ -435,6 +485,83 @@ def load_estimation(path: str | Path) -> dict:
     return est
 
 
-def load_config(path: str | Path) -> Scenario:
-    """Load and validate a scenario TOML file (following its ``base`` chain)."""
-    return parse_config(_read_toml(Path(path)), str(path))
+def _field_type(model: type[BaseModel], key: str, where: str):
+    """The annotation of field ``key`` of ``model``; ConfigError naming the known fields if none."""
+    f = model.model_fields.get(key)
+    if f is None:
+        raise ConfigError(f"unknown field '{where}' (fields of [{where.rpartition('.')[0] or 'top level'}]: "
+                          f"{', '.join(model.model_fields)})")
+    return f.annotation
+
+
+def _check_key(path: list[str]) -> None:
+    """Walk the Scenario schema along ``path``; ConfigError (one line) if it names no field."""
+    t: object = Scenario
+    for i, key in enumerate(path):
+        where = ".".join(path[: i + 1])
+        args = [a for a in get_args(t) if a is not type(None)]
+        if get_origin(t) in (Union, UnionType) and args:  # X | None: the model or dict alternative
+            t = next((a for a in args if isinstance(a, type) and issubclass(a, BaseModel)),
+                     next((a for a in args if get_origin(a) is dict), args[0]))
+        if isinstance(t, type) and issubclass(t, BaseModel):
+            t = _field_type(t, key, where)
+        elif get_origin(t) is dict:
+            kt, vt = get_args(t)
+            allowed = get_args(kt) if get_origin(kt) is Literal else None
+            if allowed and key not in allowed:
+                raise ConfigError(f"unknown key '{where}' (one of: {', '.join(map(str, allowed))})")
+            t = vt
+        else:
+            raise ConfigError(f"'{'.'.join(path[:i])}' is a value, not a table: cannot set '{where}'")
+
+
+def parse_override(text: str) -> tuple[list[str], object]:
+    """``KEY=VALUE`` of ``--set``: KEY a dotted field path (``swarm.n_uavs``), VALUE a TOML value
+    (``100``, ``60.0``, ``true``, ``[2, 9]``, ``"x"``) or else a bare string. ConfigError (one line)
+    naming the problem."""
+    key, eq, raw = str(text).partition("=")
+    key, raw = key.strip(), raw.strip()
+    path = key.split(".")
+    if not eq or not key or not all(p.strip() for p in path):
+        raise ConfigError(f"--set {text!r}: expected KEY=VALUE with KEY a dotted field path, e.g. --set swarm.n_uavs=100")
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw
+    try:
+        _check_key(path)
+    except ConfigError as e:
+        raise ConfigError(f"--set {text}: {e}") from None
+    return path, value
+
+
+def apply_overrides(data: dict, overrides) -> dict:
+    """A copy of the raw config dict with each ``--set KEY=VALUE`` applied (later ones win), before
+    validation, so that :func:`parse_config` names the field of a bad value."""
+    out = json.loads(json.dumps(data))  # deep copy (TOML values are JSON-able)
+    for text in overrides or ():
+        path, value = parse_override(text)
+        d = out
+        for key in path[:-1]:
+            if not isinstance(d.get(key), dict):
+                d[key] = {}
+            d = d[key]
+        d[path[-1]] = value
+    return out
+
+
+def load_config(path: str | Path, overrides=None) -> Scenario:
+    """Load and validate a scenario TOML file (following its ``base`` chain), with the ``--set
+    KEY=VALUE`` ``overrides`` applied before validation. An invalid result caused with overrides
+    is reported on one line naming the field(s)."""
+    data = _read_toml(Path(path))
+    if not overrides:
+        return parse_config(data, str(path))
+    data = apply_overrides(data, overrides)
+    try:
+        return Scenario.model_validate(data)
+    except ValidationError as e:
+        probs = "; ".join(f"field '{'.'.join(str(p) for p in err['loc']) or '(top level)'}': {err['msg']}"
+                          + ("" if isinstance(err.get("input"), dict) else f" (got {err.get('input')!r:.60})")
+                          for err in e.errors())
+        raise ConfigError(f"{path} with --set {' '.join(overrides)}: invalid configuration: {probs}") from None

@@ -116,22 +116,38 @@ def centre_acceleration(sc: Scenario, t: np.ndarray):
 
 
 def formation_offsets(sc: Scenario, rng: np.random.Generator) -> np.ndarray:
-    """(U,3) start positions: UAV 1 at uav1_start_enu_m, the rest uniform in the box, ≥ min_separation apart."""
+    """(U,3) start positions: UAV 1 at uav1_start_enu_m, the rest uniform in the box
+    (``swarm.formation_box()``: the box as given, or grown with n_uavs at ``density_per_km3``),
+    ≥ min_separation apart.
+
+    Rejection sampling, one ``rng.random(3)`` per candidate; the distance test is vectorised over
+    the points placed so far (O(N) numpy per candidate instead of a Python loop over them), and a
+    candidate within 1e-9 relative of the separation is decided by the original per-point
+    expression, so every config draws exactly the offsets it drew before (same decisions).
+    """
     sw = sc.swarm
-    lo = np.array([sw.box_e_m[0], sw.box_n_m[0], sw.box_u_m[0]])
-    hi = np.array([sw.box_e_m[1], sw.box_n_m[1], sw.box_u_m[1]])
-    pts = [np.asarray(sw.uav1_start_enu_m, float)]
-    for i in range(1, sw.n_uavs):
+    lo, hi = sw.formation_box()
+    sep = float(sw.min_separation_m)
+    U = sw.n_uavs
+    pts = np.empty((U, 3))
+    pts[0] = np.asarray(sw.uav1_start_enu_m, float)
+    for i in range(1, U):
+        placed = pts[:i]
         for _ in range(20000):
             c = lo + (hi - lo) * rng.random(3)
-            if min(np.linalg.norm(c - p) for p in pts) >= sw.min_separation_m:
-                pts.append(c)
+            dd = placed - c
+            dmin = float(np.sqrt(np.min(np.einsum("ij,ij->i", dd, dd))))
+            if abs(dmin - sep) <= 1e-9 * sep:  # borderline: the original expression decides
+                dmin = min(np.linalg.norm(c - p) for p in placed)
+            if dmin >= sep:
+                pts[i] = c
                 break
         else:
             raise ConfigError(
                 f"swarm: cannot place UAV {i + 1} inside the box at least min_separation_m = "
-                f"{sw.min_separation_m} m from the others; enlarge box_*_m or reduce min_separation_m")
-    return np.array(pts)
+                f"{sw.min_separation_m} m from the others; enlarge box_*_m (or lower density_per_km3) "
+                f"or reduce min_separation_m")
+    return pts
 
 
 @dataclass
