@@ -2,7 +2,7 @@
 
 Small ``log_*`` functions for one epoch (the live monitor), ``send_*`` bulk versions built on
 ``rr.send_columns`` (evaluate logs whole runs at once), two named timelines and one default
-blueprint. Entity layout (algorithm names as in DESIGN.md §4)::
+blueprint. Entity layout (algorithm names as in estimators/registry.py)::
 
     /swarm/truth/uav<id>            Points3D  truth position (grey, smaller)
     /swarm/anchors                  Points3D  fixed UWB anchors (static; recorded datasets)

@@ -1,4 +1,4 @@
-"""Scenario configs: the shipped files carry DESIGN.md §3's numbers; broken files fail naming the field."""
+"""Scenario configs: the shipped files carry the paper's §3.1 numbers; broken files fail naming the field."""
 
 from pathlib import Path
 

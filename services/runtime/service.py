@@ -1,7 +1,7 @@
 """Runtime shared by the Zenoh services (uav_node, sensor_sim, monitor): inbox, signals, logging.
 
 Heavy work never runs in a Zenoh callback (gtsam holds the GIL; starving callbacks lose samples,
-DESIGN.md §6). Every subscriber/queryable gets a ``FifoChannel`` handler and one small pump thread
+docs/deployment.md). Every subscriber/queryable gets a ``FifoChannel`` handler and one small pump thread
 of ours that blocks in ``recv()`` (GIL released) and appends the sample to a deque; the service
 loop drains the deque. The loop is woken through an Event only while it waits, and a pump may take
 a ``direct`` function that consumes the item in the pump thread (light work only: e.g. decode and

@@ -1,6 +1,6 @@
 """The one Zenoh config builder of every swarmnav program (router, services, tests).
 
-DESIGN.md §6: listen endpoints explicit (loopback by default), multicast scouting off, a short
+Zenoh 1.10 practice (docs/deployment.md): listen endpoints explicit (loopback by default), multicast scouting off, a short
 link lease so a hung process loses its liveliness token quickly. Services run in ``client`` mode
 and connect to the run's router; for several hosts point ``--router`` at the router host (see
 deploy/zenoh-router.json5 / deploy/zenoh-client.json5 and the README).

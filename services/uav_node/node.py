@@ -1,4 +1,4 @@
-"""uav_node: one UAV's estimator as its own process on Zenoh (DESIGN.md §2, issue 4).
+"""uav_node: one UAV's estimator as its own process on Zenoh (docs/architecture.md).
 
 Start-up: query the run's dataset meta and this UAV's initial knowledge from the sensor-sim
 (``meta``, ``uav/<id>/init``), build the estimator with ``registry.make_node`` and the same

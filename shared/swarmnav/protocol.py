@@ -5,7 +5,7 @@ must broadcast and receives, in return, the dict of the other live nodes' states
 round. The in-process transport (:func:`run_epoch_in_process`) and the Zenoh ``uav_node``
 service both drive this generator, so with synchronous rounds they compute the same numbers.
 
-Round structure (DESIGN.md §2): round 0 = predicted state (+ own ranges); round r = 1..R uses the
+Round structure (docs/architecture.md): round 0 = predicted state (+ own ranges); round r = 1..R uses the
 neighbours' round r-1 states. Convergence is decided swarm-wide from the round's states, which
 every node receives, so every node stops after the same round.
 """

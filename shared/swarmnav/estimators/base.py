@@ -101,7 +101,7 @@ class NodeEstimate:
 
 @dataclass
 class InitialState:
-    """A node's initial knowledge at epoch 0 (coarse alignment, DESIGN.md §3)."""
+    """A node's initial knowledge at epoch 0 (coarse alignment: initial.py)."""
 
     t: float
     pos: np.ndarray

@@ -2,7 +2,7 @@
 
 Noise model: continuous-time densities from the dataset's :class:`ImuNoise` (SI). Earth model:
 ENU navigation frame, gravity [0, 0, -g] and Earth rotation at the origin latitude given to gtsam
-as ``n_gravity`` / ``omegaCoriolis`` (DESIGN.md §3 "Earth model").
+as ``n_gravity`` / ``omegaCoriolis`` (the Earth model of sim/earth.py).
 
 Samples are a zero-order hold (dataset convention): the sample at ``imu_t[j]`` holds over
 ``[imu_t[j], imu_t[j+1])``, the last one until the epoch end ``t``; only the part inside

@@ -1,6 +1,7 @@
 """Algorithm names -> estimator classes (lazy imports), and the settings dict every estimator gets.
 
-Names are the ones used everywhere (CLI, report keys, Rerun entity paths): DESIGN.md §4.
+Names are the ones used everywhere (CLI, report keys, Rerun entity paths); docs/estimators.md
+describes each.
 Factories import their module only when asked, so ``swarmnav evaluate --algos ins`` never pays
 for (or depends on) the gtsam graph code, and a missing estimator is reported as a clear error.
 

@@ -2,7 +2,7 @@
 
 - Normal gravity: Somigliana's closed formula on the WGS84 ellipsoid with the second-order
   free-air height correction (NIMA TR8350.2, eqs. 4-1 and 4-3), evaluated once at the geodetic
-  origin and held constant over the local-level ENU frame (DESIGN.md §3 "Earth model").
+  origin and held constant over the local-level ENU frame.
 - Earth rotation in ENU at latitude φ: Ω_ie = ω_ie · [0, cos φ, sin φ], ω_ie = 7.292115e-5 rad/s (WGS84).
 - PSINS ``imuerrset`` units -> SI (PSINS ``glv``: g0 = 9.7803267714 m/s², µg = 1e-6 g0).
 """
