@@ -264,6 +264,7 @@ def test_central_holds_the_initial_rest(converted, monkeypatch):
     assert all(n >= 10 for n in held.values()), held
 
 
+@pytest.mark.slow  # > 15 s: `make test-fast` leaves it out, `make test` runs it
 def test_heldout_cross_validation(converted):
     """The truth-free cross-validation behind the drag σ default (`swarmnav calibrate --dataset`):
     every anchor range of the span is held out exactly once and scored; on the first 20 s."""
@@ -313,6 +314,7 @@ def test_heldout_cv_holds_out_the_transactions_passive_rows(converted, monkeypat
         assert len(part.table("tdoa")["t"]) == sum(k not in held for k in every) < len(every)
 
 
+@pytest.mark.slow  # > 15 s: `make test-fast` leaves it out, `make test` runs it
 def test_calibrate_dataset_cli(converted, tmp_path, capsys):
     """`swarmnav calibrate --dataset DIR --grid KEY=...`: a table and JSON; a bad grid is a clear error."""
     import dataclasses

@@ -128,6 +128,7 @@ def test_interference_labels_and_size():
     assert 0.8 < s < 1.2
 
 
+@pytest.mark.slow  # > 15 s: `make test-fast` leaves it out, `make test` runs it
 def test_gnss_absent_exactly_in_outage_windows():
     sc = load_config(CONFIGS / "gnss_denied.toml")
     res = simulate_full(sc)

@@ -24,6 +24,7 @@ def paper():
     return simulate_full(load_config(CONFIGS / "paper.toml"))
 
 
+@pytest.mark.slow  # > 15 s: `make test-fast` leaves it out, `make test` runs it
 def test_noiseless_imu_reproduces_truth_over_paper(paper):
     tr = paper.truth
     every = 100  # compare at every epoch (1 s)
