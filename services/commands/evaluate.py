@@ -305,55 +305,21 @@ def run(args) -> int:
         _QUEUE = None
 
     # 3. metrics, report, files
-    from swarmnav import metrics
-    from swarmnav.evaluation import FAULT_RULE, link_labels, truth_at_epochs
-    from swarmnav.report import build_report, render_markdown, summary_table, validate_report
+    from swarmnav.assembly import assemble_report
+    from swarmnav.evaluation import link_labels, truth_at_epochs
+    from swarmnav.report import render_markdown, summary_table, validate_report
 
     from services.provenance import provenance
 
     truths = {s: truth_at_epochs(_DATASETS[s]) for s in seeds}
     windows = meta.gnss_outages
-    blocks = {}
     ran = [a for a in algos if all((a, s) in results for s in seeds)]
-    for a in ran:
-        rs = [results[(a, s)] for s in seeds]
-        blocks[a] = metrics.algorithm_metrics(
-            truths[seeds[0]].uavs, truths[seeds[0]].t,
-            [r.pos - truths[s].pos for r, s in zip(rs, seeds)], [r.vel - truths[s].vel for r, s in zip(rs, seeds)],
-            [r.pos_cov for r in rs], [r.step_ms for r in rs], windows)
-        blocks[a]["wall_s"] = float(sum(r.wall_s for r in rs))
-        blocks[a]["rounds_mean"] = float(np.mean(np.concatenate([r.rounds.ravel() for r in rs])))
-    det = single = None
-    dl = settings.get("delta_l_m")
-    dh = {"p50": None, "p95": None}
-    if "atvfg" in ran:
-        rs = [results[("atvfg", s)] for s in seeds]
-        links = []
-        labels = []
-        for i, (r, s) in enumerate(zip(rs, seeds)):
-            lk = r.links.copy()
-            lb = link_labels(_DATASETS[s])
-            # make (k) unique across seeds so labels join within their own seed
-            lk["k"] += i * (K + 1)
-            lb["k"] += i * (K + 1)
-            links.append(lk)
-            labels.append(lb)
-        det, single = metrics.detection_report(np.concatenate(links), np.concatenate(labels), meta.fault_threshold_m)
-        dh = metrics.percentiles(np.concatenate([r.delta_h_m.ravel() for r in rs]), (50, 95))
-        # the Δl the estimator used (the file's may not apply: graph.py falls back when the
-        # file was trained at another ranging σ); the settings' value only if none was reported
-        v = np.concatenate([r.delta_l_m.ravel() for r in rs])
-        v = v[np.isfinite(v)]
-        if len(v):
-            dl = float(np.median(v))
-    rep = build_report(mode="in-process", scenario=name, seeds=seeds, n_uavs=len(meta.uav_ids()),
-                       duration_s=meta.duration_s, algorithms=blocks, detection=det, detection_single=single,
-                       delta_l_m=dl, delta_h_m=dh, provenance=provenance(cfg_sha), events=[],
-                       extra={"source": "config" if args.config else "dataset", "failed": failures,
-                              "gnss_outages": [w.model_dump() for w in windows],
-                              "fault_threshold_m": meta.fault_threshold_m,
-                              "fault_threshold_rule": FAULT_RULE,
-                              "settings": {k: v for k, v in settings.items() if k != "delta_l_file"}})
+    # the one report assembly, shared with the monitor (swarmnav.assembly)
+    rep = assemble_report(mode="in-process", meta=meta, seeds=seeds, runs={a: [results[(a, s)] for s in seeds] for a in ran},
+                          truths=[truths[s] for s in seeds], labels=[link_labels(_DATASETS[s]) for s in seeds],
+                          settings=settings, provenance=provenance(cfg_sha), source="config" if args.config else "dataset",
+                          failed=failures)
+    dl = rep["thresholds"]["delta_l_m"]
     problems = validate_report(rep)
     if problems:
         log.error("report.json does not meet the contract: %s", problems)

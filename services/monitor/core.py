@@ -20,7 +20,7 @@ import numpy as np
 
 from swarmnav.dataset import Dataset
 from swarmnav.estimators import registry
-from swarmnav.evaluation import FAULT_RULE, RunResult, link_labels, truth_at_epochs
+from swarmnav.evaluation import RunResult, link_labels, truth_at_epochs
 from swarmnav.wire import messages as M
 
 from . import journal as J
@@ -252,53 +252,36 @@ class MonitorCore:
 
     # -- report ------------------------------------------------------------------------------------
     def completeness(self) -> dict:
-        got = np.isfinite(self.res.pos[..., 0])
-        exp = ~self.excused
-        miss = exp & ~got
-        missing_by_uav = {str(u): int(miss[:, j].sum()) for j, u in enumerate(self.uavs)}
-        recorded = int(got.any(axis=1).sum())
-        complete = bool(self.done and not miss.any() and not self.lost_epochs and not self.conflicts)
-        return {"complete": complete, "epochs_expected": int(self.K), "epochs_recorded": recorded,
-                "estimates_expected": int(exp.sum()), "estimates_received": int((got & exp).sum()),
-                "missing_by_uav": missing_by_uav, "epochs_lost": sorted(self.lost_epochs),
-                "conflicting_estimates": int(self.conflicts)}
+        from swarmnav.assembly import completeness
+
+        return completeness({self.algo: [self.res]}, [self.excused], self.done, sorted(self.lost_epochs), self.conflicts)
 
     def report(self) -> dict:
         from swarmnav import metrics
-        from swarmnav.report import build_report, render_markdown, validate_report
+        from swarmnav.assembly import assemble_report
+        from swarmnav.evaluation import LINK_DTYPE
+        from swarmnav.report import render_markdown, validate_report
 
         from services.provenance import dataset_sha256, provenance
 
         a, r, tr = self.algo, self.res, self.truth
-        block = metrics.algorithm_metrics(tr.uavs, tr.t, [r.pos - tr.pos], [r.vel - tr.vel], [r.pos_cov], [r.step_ms],
-                                          self.meta.gnss_outages)
-        block["rounds_mean"] = float(np.nanmean(r.rounds)) if np.isfinite(r.rounds).any() else None
-        settings = registry.settings_for_dataset(self.meta)
-        det = single = None
-        dl = settings.get("delta_l_m")
-        dh = {"p50": None, "p95": None}
-        from swarmnav.evaluation import LINK_DTYPE
-
         r.links = np.array(self.links, dtype=LINK_DTYPE) if self.links else np.zeros(0, LINK_DTYPE)
-        if a == "atvfg":
-            det, single = metrics.detection_report(r.links, link_labels(self.ds), self.meta.fault_threshold_m)
-            dh = metrics.percentiles(r.delta_h_m.ravel(), (50, 95))
-            if dl is None:
-                v = r.delta_l_m.ravel()
-                v = v[np.isfinite(v)]
-                dl = float(np.median(v)) if len(v) else None
         b, w = self.extra["bytes"], self.extra["wait_ms"]
         comp = self.completeness()
         dist = {"run_id": self.run, "epochs_recorded": comp["epochs_recorded"],
                 "missing_estimates": int((~np.isfinite(r.pos[..., 0])).sum()),
                 "bytes_out_per_uav_epoch": float(np.nanmean(b)) if np.isfinite(b).any() else None,
                 "wait_ms": metrics.percentiles(w, (50, 99)), "monitor_rejected": dict(self.rejected)}
-        extra = {**comp, "rejected": dict(self.rejected), "security": dict(self.security), "distributed": dist,
-                 "fault_threshold_m": self.meta.fault_threshold_m, "fault_threshold_rule": FAULT_RULE}
-        rep = build_report(mode="distributed", scenario=self.meta.name, seeds=[self.seed], n_uavs=len(self.uavs),
-                           duration_s=self.meta.duration_s, algorithms={a: block}, detection=det, detection_single=single,
-                           delta_l_m=dl, delta_h_m=dh, provenance=provenance(self.config_sha256 or dataset_sha256(self.meta)),
-                           events=sorted(self.events, key=lambda e: e["t"]), extra=extra)
+        # the one report assembly, shared with `swarmnav evaluate` (swarmnav.assembly); the settings
+        # are the nodes' own (services/uav_node/node.py), the thresholds those the nodes reported
+        rep = assemble_report(mode="distributed", meta=self.meta, seeds=[self.seed], runs={a: [r]}, truths=[tr],
+                              labels=[link_labels(self.ds)], settings=registry.settings_for_dataset(self.meta),
+                              provenance=provenance(self.config_sha256 or dataset_sha256(self.meta)),
+                              source="config" if self.config_sha256 else "dataset", events=self.events,
+                              excused=[self.excused], done=self.done, lost_epochs=sorted(self.lost_epochs),
+                              conflicts=self.conflicts, rejected=self.rejected,
+                              extra={"security": dict(self.security), "distributed": dist})
+        dl = rep["thresholds"]["delta_l_m"]
         probs = validate_report(rep)
         if probs and self.log is not None:
             self.log.error("report.json does not meet the contract: %s", probs)
