@@ -12,7 +12,7 @@ export OMP_NUM_THREADS=1
 export OPENBLAS_NUM_THREADS=1
 export MKL_NUM_THREADS=1
 
-.PHONY: setup demo run dropout miluv chaos view test test-fast evaluate clean help
+.PHONY: setup demo run dropout miluv chaos bench view test test-fast evaluate clean help
 help:            ## list targets and variables
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*##/ —/'
 	@echo "variables: CONFIG=$(CONFIG) ALGO=$(ALGO) SEED=$(SEED) MILUV=$(MILUV) LIVE=$(LIVE) (e.g. make run CONFIG=configs/smoke.toml ALGO=fg SEED=2; make run LIVE=1: follow the run in a Rerun viewer)"
@@ -44,6 +44,9 @@ miluv: setup     ## real MILUV flight (MILUV=dir): import, evaluate every algori
 
 chaos: setup     ## fault campaign on smoke (kills, freeze, monitor/sensor-sim/launcher/router faults) -> runs/chaos-<timestamp>/chaos.md
 	$(BIN)/python -m deploy.chaos
+
+bench: setup     ## scale benchmark on configs/scale.toml (<= 15 min): in-process cost per UAV-epoch for N = 18..1000, distributed vs in-process, RSS, profile -> bench/<timestamp>/bench.md, bench.json, cost_vs_n.png
+	$(BIN)/python -m deploy.bench
 
 evaluate: setup  ## in-process evaluation of all algorithms on CONFIG
 	$(BIN)/swarmnav evaluate --config $(CONFIG) --algos atvfg,fg,fkf,ins,central --seeds $(SEED)
