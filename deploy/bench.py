@@ -356,6 +356,7 @@ def write_plot(res: dict, path: Path) -> None:
         ax[0].plot(n, [r["wall_per_uav_epoch_ms"] for r in ok], "o-", label="wall per UAV-epoch (in-process)")
         ax[0].plot(n, [r["step_ms_p50"] for r in ok], "s-", label="atvfg step p50")
         ax[0].plot(n, [r["step_ms_p99"] for r in ok], "^--", label="atvfg step p99")
+        ax[0].plot(n, [r["cpu_per_uav_epoch_ms"] for r in ok], "d-", label="CPU per UAV-epoch (in-process)")
         ax[0].plot(n, [r["outside_estimator_per_uav_epoch_ms"] for r in ok], "x:", label="outside the estimator (bus, slicing)")
         ax[0].set_xscale("log")
         ax[0].set_yscale("log")
@@ -370,6 +371,13 @@ def write_plot(res: dict, path: Path) -> None:
     if dd:
         ax[1].plot([d["n"] for d in dd], [d["dist_command_rtf"] for d in dd], "s-", label="distributed (whole launch)")
     ax[1].axhline(1.0, color="k", lw=0.8, ls=":")
+    from matplotlib.ticker import FixedLocator, NullLocator, ScalarFormatter
+
+    sizes = sorted({r["n"] for r in ok} | {d["n"] for d in dd})
+    for x in ax:
+        x.xaxis.set_major_locator(FixedLocator(sizes))
+        x.xaxis.set_minor_locator(NullLocator())
+        x.xaxis.set_major_formatter(ScalarFormatter())
     ax[1].set_xscale("log")
     ax[1].set_yscale("log")
     ax[1].set_xlabel("swarm size N (UAVs)")
@@ -397,25 +405,44 @@ def render_md(res: dict) -> str:
          "path). *step* = the estimator's own time per UAV-epoch (all rounds); *wall/UAV-epoch* = median epoch wall ÷ N "
          "(estimator + bus + epoch slicing + protocol); *outside* = the part of it outside the estimator. Epoch 1 "
          "(bootstrap) left out of the per-epoch figures.", "",
-         "| N | scenario s | links/UAV | step p50 ms | step p99 ms | wall/UAV-epoch ms | outside ms | epoch wall ms | "
-         "real-time × | rounds | simulate s | peak RSS MB | load1 before→after |",
-         "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+         "| N | scenario s | links/UAV | step p50 ms | step p99 ms | wall/UAV-epoch ms | CPU/UAV-epoch ms | outside ms | "
+         "epoch wall ms | real-time × | rounds | simulate s | peak RSS MB | load1 before→after |",
+         "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in res["inproc"]:
         if "error" in r:
-            L.append(f"| {r['n']} | {r['duration_s']:g} | — | — | — | — | — | — | — | — | — | — | failed: {r['error']} "
+            L.append(f"| {r['n']} | {r['duration_s']:g} | — | — | — | — | — | — | — | — | — | — | — | failed: {r['error']} "
                      f"(load {r.get('load1_after')}) |")
             continue
         L.append(f"| {r['n']} | {r['duration_s']:g} | {r['links_per_uav_epoch']:.1f} | {r['step_ms_p50']:.2f} | "
-                 f"{r['step_ms_p99']:.2f} | {r['wall_per_uav_epoch_ms']:.2f} | {r['outside_estimator_per_uav_epoch_ms']:.2f} | "
+                 f"{r['step_ms_p99']:.2f} | {r['wall_per_uav_epoch_ms']:.2f} | {r['cpu_per_uav_epoch_ms']:.2f} | "
+                 f"{r['outside_estimator_per_uav_epoch_ms']:.2f} | "
                  f"{r['epoch_wall_ms_p50']:.0f} | {r['realtime_factor']:.2f} | {r['rounds_mean']:.1f} | {r['simulate_s']:.1f} | "
                  f"{r['peak_rss_mb']:.0f} | {r['load1_before']}→{r['load1_after']} |")
     ok = [r for r in res["inproc"] if "error" not in r]
     if len(ok) >= 2:
-        a, b = ok[0], ok[-1]
+        a, b = next((r for r in ok if r["n"] == 50), ok[0]), ok[-1]
         g = b["wall_per_uav_epoch_ms"] / a["wall_per_uav_epoch_ms"]
         L += ["", f"Per-UAV-epoch wall grows {g:.1f}× from N = {a['n']} to N = {b['n']} at fixed density "
                   f"(the issue's target: flat within 1.5× from 50 to 1,000); the estimator step p50 grows "
                   f"{b['step_ms_p50'] / a['step_ms_p50']:.1f}×."]
+    if len(ok) >= 2:
+        import math
+
+        L += ["", "Growth between consecutive sizes as an exponent b of cost per UAV-epoch ∝ N^b (b ≈ 0: the per-UAV "
+                  "cost is flat, O(neighbours); b ≈ 1: the swarm's cost per epoch grows O(N²)):", "",
+              "| N from → to | b (wall/UAV-epoch) | b (CPU/UAV-epoch) | b (step p50) | b (outside the estimator) | "
+              "b (simulate s / N) | load1 |", "|---|---:|---:|---:|---:|---:|---|"]
+        for a, b in zip(ok, ok[1:]):
+            def ex(key, per_n=False):
+                x, y = a.get(key), b.get(key)
+                if not x or not y or x <= 0 or y <= 0:
+                    return "—"
+                if per_n:
+                    x, y = x / a["n"], y / b["n"]
+                return f"{math.log(y / x) / math.log(b['n'] / a['n']):.2f}"
+            L.append(f"| {a['n']} → {b['n']} | {ex('wall_per_uav_epoch_ms')} | {ex('cpu_per_uav_epoch_ms')} | "
+                     f"{ex('step_ms_p50')} | {ex('outside_estimator_per_uav_epoch_ms')} | {ex('simulate_s', True)} | "
+                     f"{a['load1_after']}→{b['load1_after']} |")
     L += ["", "## Distributed against in-process, back to back", "",
           "The same scenario (N, scenario seconds, seed) run by `swarmnav evaluate --algos atvfg --jobs 1` and then by "
           "`swarmnav launch` (one process per UAV, secure Zenoh, lockstep); walls of the whole commands (simulation, "
