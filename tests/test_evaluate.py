@@ -75,6 +75,8 @@ def test_evaluate_smoke_end_to_end(tmp_path, short_smoke):
     dh, dl = rep["thresholds"]["delta_h_m"]["p50"], rep["thresholds"]["delta_l_m"]
     assert dl is not None and dh is not None and 0 < dl < dh
     assert set(a["per_uav_pos_rmse_m"]) == {"1", "2", "3", "4", "5"}
+    # the seeds are the scenario's report seeds (smoke inherits paper's [evaluation])
+    assert rep["evaluation"]["seeds_role"] == "report" and rep["evaluation"]["tuning_seeds"][0] == 1001
     # Monte Carlo over the two seeds: per-seed RMSEs whose pooled RMS is the pooled figure
     mc = rep["monte_carlo"]
     assert mc["n_seeds"] == 2 and set(mc["per_algorithm"]) == {"atvfg", "fg"}

@@ -30,6 +30,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from . import metrics
+from .config import evaluation_block
 from .evaluation import FAULT_RULE, RunResult, Truth
 from .report import build_report
 
@@ -152,7 +153,9 @@ def assemble_report(*, mode: str, meta, seeds: Sequence[int], runs: Mapping[str,
     ex = {**comp, "rejected": dict(rejected or {}), "source": source, "failed": dict(failed or {}),
           "gnss_outages": [w.model_dump() if hasattr(w, "model_dump") else dict(w) for w in windows],
           "fault_threshold_m": meta.fault_threshold_m, "fault_threshold_rule": FAULT_RULE,
-          "settings": {k: v for k, v in settings.items() if k != "delta_l_file"}}
+          "settings": {k: v for k, v in settings.items() if k != "delta_l_file"},
+          # the scenario's [evaluation] seeds and whether these are report or tuning seeds
+          "evaluation": evaluation_block((getattr(meta, "config", None) or {}).get("evaluation"), seeds)}
     for k, v in (extra or {}).items():
         ex.setdefault(k, v)
     rep = build_report(mode=mode, scenario=meta.name, seeds=seeds, n_uavs=len(meta.uav_ids()),

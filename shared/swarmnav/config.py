@@ -390,6 +390,16 @@ class Evaluation(_Model):
         return "mixed" if s & tune else "report" if s <= rep else "other"
 
 
+def evaluation_block(table: dict | None, seeds) -> dict | None:
+    """report.json ``evaluation``: the scenario's named tuning and report seeds and what ``seeds`` are
+    ('report', 'tuning', 'mixed' or 'other'); None when the data names none (e.g. a recording)."""
+    if not table:
+        return None
+    ev = Evaluation.model_validate(table)
+    return {"tuning_seeds": ev.seeds("tuning"), "report_seeds": ev.seeds("report"),
+            "tuning_scenarios": list(ev.tuning_scenarios), "seeds_role": ev.role_of(seeds)}
+
+
 class Scenario(_Model):
     """A whole scenario file."""
 

@@ -167,6 +167,12 @@ def render_markdown(rep: dict) -> str:
     L.append("")
     L.append(f"Seeds {rep['seeds']}, {rep['n_uavs']} UAVs, {rep['duration_s']:g} s. "
              "RMSE pooled over UAVs, epochs and seeds (paper eq. 28; NEES and detection scoring: docs/estimators.md).")
+    ev = rep.get("evaluation")
+    if ev:
+        role = {"report": "the scenario's report seeds", "tuning": "**tuning seeds**: numbers not to report",
+                "mixed": "**partly tuning seeds**: numbers not to report"}.get(ev.get("seeds_role"), "seeds the scenario names neither for tuning nor for reporting")
+        L.append(f"These are {role} (settings tuned on seeds {_seed_text(ev.get('tuning_seeds') or [])}"
+                 + (f" and on {', '.join(ev['tuning_scenarios'])}" if ev.get("tuning_scenarios") else "") + ").")
     if "central" in algos:
         L.append("`central` is an **oracle**: one joint graph with the truly faulty links removed using the labels.")
     L.append("")
@@ -233,7 +239,7 @@ def render_markdown(rep: dict) -> str:
     th = rep["thresholds"]
     L.append("")
     L.append(f"Thresholds: Δl = {_f(th['delta_l_m'], 3)} m; Δh p50 = {_f(th['delta_h_m'].get('p50'), 3)} m, "
-             f"p95 = {_f(th['delta_h_m'].get('p95'), 3)} m.")
+             f"p95 = {_f(th['delta_h_m'].get('p95'), 3)} m." + _delta_l_note(th))
     L.append("")
     L.append("## Per-UAV 3-D position RMSE (m)")
     L.append("")
@@ -324,6 +330,22 @@ def consistency_markdown(algos: dict) -> list[str]:
                  f"{_pct(a.get('nees_above_band_frac'))} | {_pct(a.get('nees_epochs_in_bounds_frac'))} | "
                  f"{a.get('nees_n', '—')} |")
     return L
+
+
+def _delta_l_note(th: dict) -> str:
+    """Where Δl came from (swarmnav.assembly: the value the estimators reported using)."""
+    if "delta_l_used_m" not in th:
+        return ""
+    if th.get("delta_l_used_m") is None:
+        return f" No algorithm that ran uses Δl (configured {_f(th.get('delta_l_configured_m'), 3)} m)."
+    txt = f" Δl is the value the {th.get('delta_l_algorithm') or ''} estimators used"
+    src = th.get("delta_l_source") or ""
+    if src != "delta_l_file" and th.get("delta_l_configured_m") is not None:
+        txt += f" ({src}; the settings' Δl, {_f(th['delta_l_configured_m'], 3)} m, did not apply)"
+    by = sorted({round(v, 9) for v in (th.get("delta_l_used_by_uav_m") or {}).values()})
+    if len(by) > 1:
+        txt += f"; per UAV {_f(by[0], 3)}–{_f(by[-1], 3)} m"
+    return txt + "."
 
 
 def summary_table(rep: dict) -> str:
