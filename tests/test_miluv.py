@@ -374,7 +374,7 @@ def test_cli(tmp_path):
 
 
 def test_bad_input_messages(tmp_path):
-    from services.importers.miluv import convert, read_csv, read_simple_yaml
+    from services.importers.miluv import convert, read_csv, read_yaml
 
     p = tmp_path / "bad.csv"
     p.write_text('timestamp,range,pair\n0.1,2.0,"(1, 2)"\n0.2,oops,"(1, 2)"\n')
@@ -387,6 +387,6 @@ def test_bad_input_messages(tmp_path):
         read_csv(p, ["timestamp", "range"])
     y = tmp_path / "b.yaml"
     y.write_text('# c\nifo001:\n  "-0.0924"\n\nifo002:\n  "10": "[1, 2, 3]"\n')
-    assert read_simple_yaml(y) == {"ifo001": "-0.0924", "ifo002": {"10": "[1, 2, 3]"}}
+    assert read_yaml(y) == {"ifo001": "-0.0924", "ifo002": {"10": "[1, 2, 3]"}}
     with pytest.raises(DatasetError, match="not a directory"):
         convert(tmp_path / "nope")
