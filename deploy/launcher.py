@@ -36,6 +36,7 @@ from swarmnav.wire import messages as M
 
 REPO = Path(__file__).resolve().parents[1]
 STOP_GRACE_S = 2.5  # SIGTERM -> SIGKILL for children when the run is stopped
+MONITOR_GRACE_S = 4.0  # ... the monitor, which writes the run's report on SIGTERM, gets longer
 ESSENTIAL = ("sensor_sim", "monitor")
 PRINCIPAL = {"sensor_sim": "sensor-sim", "monitor": "monitor"}  # process name -> security principal
 
@@ -104,15 +105,17 @@ def start(proc: Proc) -> None:
 
 
 def stop_all(procs: list[Proc], grace: float = STOP_GRACE_S) -> None:
-    """SIGTERM every live child, SIGKILL whoever is still there after ``grace`` seconds."""
+    """SIGTERM every live child, SIGKILL whoever is still there after ``grace`` seconds (the
+    monitor, writing the report, after ``MONITOR_GRACE_S``)."""
     live = [p for p in procs if p.p is not None and p.p.poll() is None]
     for p in live:
         try:
             p.p.send_signal(signal.SIGTERM)
         except ProcessLookupError:
             pass
-    end = time.monotonic() + grace
-    for p in live:
+    t0 = time.monotonic()
+    for p in sorted(live, key=lambda p: p.name == "monitor"):  # the monitor last: it has the longest grace
+        end = t0 + (max(grace, MONITOR_GRACE_S) if p.name == "monitor" else grace)
         try:
             p.p.wait(timeout=max(0.05, end - time.monotonic()))
         except subprocess.TimeoutExpired:

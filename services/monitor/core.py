@@ -13,6 +13,7 @@ expected estimate arrived, the run reached its end (the clock's ``done``) and no
 from __future__ import annotations
 
 import json
+import threading
 import time
 from pathlib import Path
 
@@ -90,6 +91,30 @@ class MonitorCore:
         R.log_event("run_started", 0, self.meta.t_start, rec=self.rec, level="INFO",
                     text=f"distributed run {run}: {len(self.uavs)} UAVs, {algo}, security {self.security.get('mode')} "
                          f"(ACL {'on' if self.security.get('acl') else 'off'})")
+        # a stopped run must get its report inside the launcher's SIGTERM grace (2.5 s): whatever the
+        # report assembly imports lazily (scipy.stats for NEES bands: ~1-4 s) is loaded now, aside
+        self._labels = None
+        threading.Thread(target=self._warm_report, name="warm-report", daemon=True).start()
+
+    def _warm_report(self) -> None:
+        """Assemble (and discard) the report of two epochs of perfect estimates: every import and
+        first-call cost of the report path is paid here, not when the run is stopped."""
+        try:
+            from swarmnav.assembly import assemble_report
+            from swarmnav.evaluation import LINK_DTYPE
+
+            tr, n = self.truth, min(2, self.K)
+            r = RunResult.empty(self.algo, self.seed, self.uavs, tr.t[:n])
+            r.pos[:], r.vel[:], r.pos_cov[:], r.step_ms[:] = tr.pos[:n], tr.vel[:n], np.eye(3), 1.0
+            r.delta_l_m[:], r.delta_h_m[:] = 1.0, 3.0
+            r.links = np.zeros(0, LINK_DTYPE)
+            t = type(tr)(tr.uavs, tr.t[:n], tr.pos[:n], tr.vel[:n], tr.quat[:n])
+            self._labels = link_labels(self.ds)  # the dataset's fault labels, for the real report too
+            assemble_report(mode="distributed", meta=self.meta, seeds=[self.seed], runs={self.algo: [r]}, truths=[t],
+                            labels=[self._labels[:0]], settings={}, provenance={}, source="dataset")
+        except Exception as e:  # only a warm-up: the real report reports its own errors
+            if self.log is not None:
+                self.log.debug("report warm-up: %s", e)
 
     # -- inputs ---------------------------------------------------------------------------------
     def event(self, kind: str, uav: int = 0, t: float | None = None, **extra) -> None:
@@ -275,7 +300,8 @@ class MonitorCore:
         # the one report assembly, shared with `swarmnav evaluate` (swarmnav.assembly); the settings
         # are the nodes' own (services/uav_node/node.py), the thresholds those the nodes reported
         rep = assemble_report(mode="distributed", meta=self.meta, seeds=[self.seed], runs={a: [r]}, truths=[tr],
-                              labels=[link_labels(self.ds)], settings=registry.settings_for_dataset(self.meta),
+                              labels=[self._labels if self._labels is not None else link_labels(self.ds)],
+                              settings=registry.settings_for_dataset(self.meta),
                               provenance=provenance(self.config_sha256 or dataset_sha256(self.meta)),
                               source="config" if self.config_sha256 else "dataset", events=self.events,
                               excused=[self.excused], done=self.done, lost_epochs=sorted(self.lost_epochs),
@@ -304,11 +330,13 @@ class MonitorCore:
                 self.log.warning("figures not written: %s", e)
 
     def finish(self, figures: bool = True) -> dict:
-        """Close every epoch in the recording, write the report, close the recording, then (unless
-        stopping on a signal, when every second counts) the figures."""
+        """Write the report first (the essential output: a launcher stopping the run allows only
+        seconds), then close every epoch in the recording and close it, then (unless stopping on a
+        signal, when every second counts) the figures. Killed half-way, the journal and the
+        recording's segments on disk let ``swarmnav report RUN_DIR`` rebuild what is missing."""
         try:
-            self.close_epochs(self.K, force=True)
             rep = self.report()
+            self.close_epochs(self.K, force=True)
         finally:
             self.sink.close()
             if self.journal is not None:
