@@ -316,3 +316,71 @@ def test_report_monte_carlo_and_consistency_sections():
                                                                 [np.ones((10, 2))])}, **{**kw, "seeds": [7]})
     assert one["monte_carlo"]["per_algorithm"]["atvfg"]["ci95"] is None
     assert "Monte Carlo" not in render_markdown(one)
+
+
+def _range_world(cov_scale, K=400, seed=1, lever=(0.2, 0.0, 0.1)):
+    """Two UAVs flying at constant velocity and one anchor; estimates = truth + N(0, P) with P known;
+    ranges between tags (lever arms) drawn from the truth at their own times. The estimator
+    reports cov_scale * P."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(1, K + 1, dtype=float)
+    v = np.array([[3.0, 1.0, 0.0], [-1.0, 2.0, 0.5]])
+    p0 = np.array([[0.0, 0.0, 10.0], [40.0, -20.0, 15.0]])
+    true = p0[None] + t[:, None, None] * v[None]  # (K,2,3)
+    A = rng.normal(size=(K, 2, 3, 3)) * 0.3
+    P = A @ np.swapaxes(A, -1, -2) + 0.01 * np.eye(3)
+    pos = true + (np.linalg.cholesky(P) @ rng.normal(size=(K, 2, 3, 1)))[..., 0]
+    quat = np.zeros((K, 2, 4))
+    quat[..., 0] = np.cos(0.3)
+    quat[..., 3] = np.sin(0.3)  # yaw 0.6 rad
+    anchor = np.array([10.0, 30.0, 0.0])
+    tags = {1: {0: lever}, 2: {0: (0.0, 0.0, 0.0)}, 100: {0: (0.0, 0.0, 0.0)}}
+    rows = []
+    sigma = 0.1
+    for k in range(1, K + 1):  # epoch 1's rows have no earlier estimate: skipped
+        for frac in (0.3, 1.0):
+            tt = k - 1 + frac
+            pt = p0 + tt * v
+            arm = M._rotate(quat[0, :1], np.array([lever]))[0]
+            a1 = pt[0] + arm
+            for b, pb in ((2, pt[1]), (100, anchor)):
+                rows.append((tt, 1, b, np.linalg.norm(a1 - pb) + sigma * rng.normal(), sigma, 0.0))
+    r = np.array(rows)
+    ranges = {"t": r[:, 0], "a": r[:, 1].astype(int), "b": r[:, 2].astype(int), "tag_a": np.zeros(len(r), int),
+              "tag_b": np.zeros(len(r), int), "range": r[:, 3], "sigma": r[:, 4], "fault_err": r[:, 5]}
+    vel = np.broadcast_to(v, (K, 2, 3))
+    return t, pos, vel, cov_scale * P, quat, ranges, tags, {100: anchor}
+
+
+def test_range_nis_consistent_and_two_sided():
+    """Range NIS against the prior estimate (no truth): chi2(1) for the true covariance; too large for
+    an overconfident one, too small for an over-conservative one."""
+    def run(scale):
+        t, pos, vel, cov, quat, ranges, tags, anchors = _range_world(scale)
+        nis, label = M.range_nis_values(t, [1, 2], pos, vel, cov, quat, ranges, tags, anchors, thr=0.3)
+        assert len(nis) == 2 * 2 * (400 - 1)  # 2 ranges to 2 nodes per epoch, epoch 1 skipped
+        return M.nis_summary(nis, label)
+
+    good = run(1.0)
+    assert good["nis_rows"] == "labelled clean"
+    assert good["nis_mean"] == pytest.approx(1.0, abs=0.12) and good["nis_in_band_share"] == pytest.approx(0.95, abs=0.03)
+    lo, hi = good["nis_band"]
+    assert lo == pytest.approx(0.000982, rel=1e-2) and hi == pytest.approx(5.024, rel=1e-3)
+    over, cons = run(0.1), run(10.0)
+    assert over["nis_mean"] > 3 and over["nis_above_band_frac"] > 0.15
+    assert cons["nis_mean"] < 0.3 and cons["nis_median"] < 0.1
+    assert cons["nis_below_band_frac"] > 0.04 and cons["nis_in_band_share"] < good["nis_in_band_share"]
+
+
+def test_range_nis_labels_and_unknown_nodes():
+    t, pos, vel, cov, quat, ranges, tags, anchors = _range_world(1.0, K=20)
+    ranges["fault_err"] = ranges["fault_err"].copy()
+    ranges["fault_err"][4:10] = 5.0  # faulty rows (epochs 2 and 3): left out of the summary
+    ranges["range"] = ranges["range"].copy()
+    ranges["range"][4:10] += 5.0
+    nis, label = M.range_nis_values(t, [1, 2], pos, vel, cov, quat, ranges, tags, anchors, thr=0.3)
+    assert (label == 0).sum() == 6 and M.nis_summary(nis, label)["nis_n"] == (label == 1).sum()
+    unl = M.nis_summary(nis, np.full(len(nis), -1))
+    assert unl["nis_rows"] == "all (no labels)" and unl["nis_n"] == len(nis)
+    nis2, _ = M.range_nis_values(t, [1, 2], pos, vel, cov, quat, ranges, tags, {}, thr=0.3)  # anchor unknown
+    assert len(nis2) == len(nis) // 2
