@@ -24,21 +24,7 @@ import numpy as np
 
 from .dataset import Dataset
 from .estimators.base import InitialState
-from .geometry import quat_mul, quat_from_rotvec
-
-
-def _quat_zyx(yaw: float, pitch: float, roll: float) -> np.ndarray:
-    """w,x,y,z of R = Rz(yaw) Ry(pitch) Rx(roll) (body FLU -> ENU)."""
-    cy, sy = np.cos(yaw / 2), np.sin(yaw / 2)
-    cp, sp = np.cos(pitch / 2), np.sin(pitch / 2)
-    cr, sr = np.cos(roll / 2), np.sin(roll / 2)
-    return np.array([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-                     cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
-
-
-def _yaw_of(q: np.ndarray) -> float:
-    w, x, y, z = q
-    return float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+from .geometry import quat_from_euler_zyx, quat_from_rotvec, quat_mul, yaw_of
 
 
 def level_roll_pitch(ds: Dataset, uav: int, t0: float, window_s: float) -> tuple[float, float] | None:
@@ -81,7 +67,7 @@ def initial_states(ds: Dataset, seed: int) -> dict[int, InitialState]:
             imu = node.imu
             rp_l = np.deg2rad(float(init["level_roll_pitch_sigma_deg"])) if "level_roll_pitch_sigma_deg" in init \
                 else max((imu.accel_bias_sigma if imu else 0.05) / meta.earth.gravity_mps2, 1e-4)
-            q_lev = _quat_zyx(_yaw_of(q_true), lv[1], lv[0])
+            q_lev = quat_from_euler_zyx(yaw_of(q_true), lv[1], lv[0])
             q0 = quat_mul(quat_from_rotvec(np.array([0.0, 0.0, draw[2] * yaw])), q_lev)
             sig = np.array([rp_l, rp_l, yaw])
         out[u] = InitialState(t=float(tr["t"][i]), pos=pos, vel=vel, quat=q0,

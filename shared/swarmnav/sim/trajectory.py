@@ -40,7 +40,7 @@ import numpy as np
 from ..config import Scenario
 from ..errors import ConfigError
 from .earth import earth_rate_enu, normal_gravity
-from .quat import qconj, qexp, qlog, qmul, qrot
+from ..geometry import quat_conj as qconj, quat_mul as qmul, quat_rotate as qrot, quat_to_rotvec as qlog
 
 WANDER_RAMP_S = 30.0
 
