@@ -20,7 +20,9 @@ quotes the settings file when the estimator fell back to another value (graph.py
 
 Adding a field: compute it here from ``runs``/``truths``/``labels`` (per-algorithm blocks come from
 :func:`swarmnav.metrics.algorithm_metrics`, so a field added there reaches both reports), never in
-one caller only.
+one caller only. Keep it quick: a stopped distributed run must write its report inside the
+launcher's SIGTERM grace (2.5 s); the monitor runs it once on two epochs at start-up
+(``MonitorCore._warm_report``) so lazy imports (e.g. scipy.stats) are paid before.
 """
 
 from __future__ import annotations
@@ -148,7 +150,7 @@ def assemble_report(*, mode: str, meta, seeds: Sequence[int], runs: Mapping[str,
     elif configured is not None and abs(used - float(configured)) <= 1e-12 * max(1.0, abs(used)):
         source_dl = "delta_l_file"
     else:
-        source_dl = "estimator fallback (delta_l_fallback_sigmas x ranging sigma; the file's Δl does not apply)"
+        source_dl = "estimator fallback: delta_l_fallback_sigmas x the data's ranging sigma"
     comp = completeness(runs, excused, done, lost_epochs, conflicts)
     ex = {**comp, "rejected": dict(rejected or {}), "source": source, "failed": dict(failed or {}),
           "gnss_outages": [w.model_dump() if hasattr(w, "model_dump") else dict(w) for w in windows],
