@@ -20,7 +20,7 @@ from types import UnionType
 from typing import Annotated, Literal, Union, get_args, get_origin
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from .errors import ConfigError
 
@@ -319,9 +319,17 @@ class Estimation(_Model):
     delta_l_fallback_sigmas: PositiveFloat = 3.0  # Δl = this × UWB sigma when no training exists
     residual_window_epochs: int = Field(1, ge=1)  # K-means over a sliding window (sparse real data)
     peer_timeout_s: PositiveFloat = 2.0  # distributed: wall-clock wait for a live peer's round state
-    # optional estimator tuning overrides (graph.py settings keys, e.g. broadcast_cov, commit_weight);
+    # optional estimator tuning overrides (estimators/settings.py EstimatorTuning, e.g. commit_weight);
     # None = the estimators' documented defaults
-    graph: dict[str, float | int | bool | str | None] | None = None
+    graph: dict[str, float | int | bool | str | list | dict | None] | None = None
+
+    @field_validator("graph")
+    @classmethod
+    def _check_tuning(cls, v):
+        from .estimators.settings import validate_tuning
+
+        validate_tuning(v)  # a typo'd key fails naming it
+        return v
 
 
 def parse_seed_spec(spec: str | int | list[int]) -> list[int]:
