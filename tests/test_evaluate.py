@@ -92,10 +92,13 @@ def test_evaluate_smoke_end_to_end(tmp_path, short_smoke):
     for blk in (a, f):
         assert blk["nees_mean"] == pytest.approx(blk["nees"]) and 0 <= blk["nees_in_band_share"] <= 1
         assert blk["nees_n"] == 2 * SHORT_S * 5
+        assert blk["range_nis"]["nis_rows"] == "labelled clean" and blk["range_nis"]["nis_n"] > 100
+    assert a["range_nis"]["nis_median"] < f["range_nis"]["nis_median"]  # fg is overconfident
     assert rep["provenance"]["config_sha256"] and "numpy" in rep["provenance"]["packages"]
     assert "/" not in rep["provenance"]["git"]
     md = (out / "report.md").read_text()
     assert "Table 2" in md and "atvfg" in md and "Monte Carlo over 2 seeds" in md and "Consistency" in md
+    assert "Range NIS" in md
     for png in ("pos_error_uav1", "vel_error_uav1", "pos_error_swarm", "vel_error_swarm", "detection_atvfg"):
         assert (out / "figures" / f"{png}.png").stat().st_size > 1000
     for algo in ("truth", "atvfg", "fg"):

@@ -318,7 +318,7 @@ def run(args) -> int:
     rep = assemble_report(mode="in-process", meta=meta, seeds=seeds, runs={a: [results[(a, s)] for s in seeds] for a in ran},
                           truths=[truths[s] for s in seeds], labels=[link_labels(_DATASETS[s]) for s in seeds],
                           settings=settings, provenance=provenance(cfg_sha), source="config" if args.config else "dataset",
-                          failed=failures)
+                          failed=failures, ranges=[_DATASETS[s].table("ranges") for s in seeds])
     dl = rep["thresholds"]["delta_l_m"]
     problems = validate_report(rep)
     if problems:

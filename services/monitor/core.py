@@ -306,7 +306,8 @@ class MonitorCore:
                               source="config" if self.config_sha256 else "dataset", events=self.events,
                               excused=[self.excused], done=self.done, lost_epochs=sorted(self.lost_epochs),
                               conflicts=self.conflicts, rejected=self.rejected,
-                              extra={"security": dict(self.security), "distributed": dist})
+                              extra={"security": dict(self.security), "distributed": dist},
+                              ranges=[self.ds.table("ranges")])
         dl = rep["thresholds"]["delta_l_m"]
         probs = validate_report(rep)
         if probs and self.log is not None:

@@ -87,11 +87,27 @@ def completeness(runs: Mapping[str, Sequence[RunResult]], excused: Sequence[np.n
             "epochs_lost": sorted(int(k) for k in lost_epochs), "conflicting_estimates": int(conflicts)}
 
 
+def _range_nis(meta, rs: Sequence[RunResult], ranges: Sequence) -> dict:
+    """metrics.nis_summary of every seed's ranges against that seed's prior estimates."""
+    tags = {int(n.id): {int(g): tuple(v) for g, v in n.tags.items()} for n in meta.nodes}
+    anchors = meta.anchors()
+    vals, labs = [np.zeros(0)], [np.zeros(0, int)]
+    for r, rg in zip(rs, ranges):
+        if len(rg["t"]) == 0:
+            continue
+        thr = meta.fault_threshold_for(np.asarray(rg["sigma"], float))
+        v, lab = metrics.range_nis_values(r.t, r.uavs, r.pos, r.vel, r.pos_cov, r.quat, rg, tags, anchors, thr)
+        vals.append(v)
+        labs.append(lab)
+    return metrics.nis_summary(np.concatenate(vals), np.concatenate(labs))
+
+
 def assemble_report(*, mode: str, meta, seeds: Sequence[int], runs: Mapping[str, Sequence[RunResult]], truths: Sequence[Truth],
                     labels: Sequence[np.ndarray], settings: Mapping, provenance: dict, source: str,
                     events: Sequence[dict] = (), failed: Mapping[str, str] | None = None,
                     excused: Sequence[np.ndarray] | None = None, done: bool = True, lost_epochs: Sequence[int] = (),
-                    conflicts: int = 0, rejected: Mapping[str, int] | None = None, extra: Mapping | None = None) -> dict:
+                    conflicts: int = 0, rejected: Mapping[str, int] | None = None, extra: Mapping | None = None,
+                    ranges: Sequence | None = None) -> dict:
     """report.json of a run (see the module docstring).
 
     ``runs[algo]``: one :class:`RunResult` per seed of ``seeds``, in the order of ``truths`` and ``labels``
@@ -101,7 +117,8 @@ def assemble_report(*, mode: str, meta, seeds: Sequence[int], runs: Mapping[str,
     "dataset"; ``failed`` {"algo/seedN": error} of runs that did not finish. Distributed runs add
     ``excused`` (per seed, K x N: scheduled kill windows), ``done``, ``lost_epochs``, ``conflicts``,
     ``rejected`` and ``extra`` (keys only they have, e.g. ``security``, ``distributed``; never
-    overriding a key computed here).
+    overriding a key computed here). ``ranges``: each seed's ranges table; with it every algorithm
+    gets ``range_nis`` (NIS of the ranges against the prior estimates, no truth needed: _range_nis).
     """
     for a, rs in runs.items():
         if [int(r.seed) for r in rs] != [int(s) for s in seeds]:
@@ -139,6 +156,8 @@ def assemble_report(*, mode: str, meta, seeds: Sequence[int], runs: Mapping[str,
             detections[a] = metrics.detection_report(np.concatenate(lk), np.concatenate(lb), meta.fault_threshold_m)
             if a != HEADLINE_ALGO:  # build_report attaches the headline algorithm's
                 b["detection"] = detections[a][0]
+        if ranges is not None:
+            b["range_nis"] = _range_nis(meta, rs, ranges)
         blocks[a] = b
     head = HEADLINE_ALGO if HEADLINE_ALGO in thresholds else next(iter(thresholds), None)
     det, single = detections.get(head, (None, None)) if head else (None, None)

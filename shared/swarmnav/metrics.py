@@ -276,36 +276,45 @@ def range_nis_values(t_epochs, uavs, pos, vel, cov, quat, ranges, tags: dict, an
     k = np.ceil((tr - (t_ep[0] - dt)) / dt - 1e-9).astype(int)  # epoch k covers (t_{k-1}, t_k]
     i = k - 2  # index of epoch k-1 in the (epochs 1..K) arrays
     ok = (i >= 0) & (i < K)
+    ids = [int(x) for x in col] + [int(x) for x in anchors] + [int(x) for x in tags]
+    nmax = max(ids + [int(np.max(ranges["a"])), int(np.max(ranges["b"]))]) + 1
+    tmax = max([int(g) for d in tags.values() for g in d] + [int(np.max(ranges["tag_a"])), int(np.max(ranges["tag_b"]))]) + 1
+    col_lut = np.full(nmax, -1)
+    for u, j in col.items():
+        col_lut[u] = j
+    anc_lut = np.full((nmax, 3), np.nan)
+    for n, x in anchors.items():
+        anc_lut[int(n)] = np.asarray(x, float)
+    lev_lut = np.full((nmax, tmax, 3), np.nan)
+    for n, d in tags.items():
+        for g, arm in d.items():
+            lev_lut[int(n), int(g)] = np.asarray(arm, float)
     ends = []
     for node_col, tag_col in (("a", "tag_a"), ("b", "tag_b")):
         nid = np.asarray(ranges[node_col], int)
-        tag = np.asarray(ranges[tag_col], int)
-        p = np.full((len(tr), 3), np.nan)
-        P = np.zeros((len(tr), 3, 3))
-        lev = np.array([tags.get(int(n), {}).get(int(g), (np.nan,) * 3) for n, g in zip(nid, tag)], float).reshape(-1, 3)
-        is_uav = np.array([int(n) in col for n in nid], bool)
-        is_anc = np.array([int(n) in anchors for n in nid], bool)
-        if is_anc.any():
-            p[is_anc] = np.array([anchors[int(n)] for n in nid[is_anc]], float) + lev[is_anc]
-        m = is_uav & ok
-        if m.any():
-            ii, jj = i[m], np.array([col[int(n)] for n in nid[m]])
-            q = quat[ii, jj]
-            need_q = np.any(lev[m] != 0, axis=1)
-            bad_q = ~np.all(np.isfinite(q), axis=1)
-            q = np.where(bad_q[:, None], [1.0, 0, 0, 0], q)
-            arm = _rotate(q / np.linalg.norm(q, axis=1, keepdims=True), np.nan_to_num(lev[m]))
-            arm[need_q & bad_q] = np.nan
-            p[m] = pos[ii, jj] + vel[ii, jj] * (tr[m] - t_ep[ii])[:, None] + arm
-            P[m] = cov[ii, jj]
-        ok &= is_uav | is_anc
-        ends.append((p, P))
-    (pa, Pa), (pb, Pb) = ends
+        lev = lev_lut[nid, np.asarray(ranges[tag_col], int)]
+        jcol = col_lut[nid]
+        is_uav = jcol >= 0
+        p = anc_lut[nid] + lev  # anchors (NaN elsewhere)
+        m = np.flatnonzero(is_uav & ok)
+        ii, jj = i[m], jcol[m]
+        p[m] = pos[ii, jj] + vel[ii, jj] * (tr[m] - t_ep[ii])[:, None] + lev[m]
+        arm = np.flatnonzero(np.any(lev[m] != 0, axis=1))  # lever arms to rotate (NaN arm: row dropped)
+        if len(arm):
+            q = quat[ii[arm], jj[arm]]
+            qn = np.linalg.norm(q, axis=1, keepdims=True)
+            p[m[arm]] += _rotate(q / qn, lev[m[arm]]) - lev[m[arm]]  # NaN without attitude: row dropped
+        ends.append((p, m, ii, jj))
+    (pa, ma, ia, ja), (pb, mb, ib, jb) = ends
     d = pa - pb
     rng = np.linalg.norm(d, axis=1)
-    ok &= np.all(np.isfinite(d), axis=1) & (rng > 1e-9) & np.all(np.isfinite(Pa + Pb), axis=(1, 2))
-    u = d[ok] / rng[ok, None]
-    S = np.asarray(ranges["sigma"], float)[ok] ** 2 + np.einsum("mi,mij,mj->m", u, Pa[ok] + Pb[ok], u)
+    ok &= np.all(np.isfinite(d), axis=1) & (rng > 1e-9)
+    u = np.zeros_like(d)
+    u[ok] = d[ok] / rng[ok, None]
+    var = np.zeros(len(tr))
+    for m, ii, jj in ((ma, ia, ja), (mb, ib, jb)):
+        var[m] += np.einsum("mi,mij,mj->m", u[m], cov[ii, jj], u[m])
+    S = np.asarray(ranges["sigma"], float)[ok] ** 2 + var[ok]
     nu = np.asarray(ranges["range"], float)[ok] - rng[ok]
     good = np.isfinite(S) & (S > 0)
     nis = nu[good] ** 2 / S[good]
