@@ -1,4 +1,4 @@
-"""Metrics of DESIGN.md §4 on plain arrays. Pure: numpy only, no I/O.
+"""Metrics of DESIGN.md §4 on plain arrays. Pure: numpy (and scipy.stats quantiles), no I/O.
 
 Definitions (the report's keys keep exactly these meanings):
 
@@ -19,6 +19,16 @@ Definitions (the report's keys keep exactly these meanings):
   noise (``fault_threshold_m`` × the row's σ / ``uwb_sigma_m``; = fault_threshold_m for the
   simulator, whose rows all carry uwb_sigma_m), clean otherwise; unknown labels (NaN) are not scored. precision = TP/(TP+FP), recall = TP/(TP+FN),
   false-alarm rate = FP/(FP+TN); ``None`` when the denominator is 0.
+- **NEES consistency** (:func:`nees_consistency`, navlie / Bar-Shalom style): ``nees_mean``, the share
+  of UAV-epochs whose NEES lies in the two-sided χ²(3) 95 % band [0.216, 9.35]
+  (``nees_in_band_share``, expected 0.95) and the shares below/above it, the mean against its
+  two-sided bounds χ²(3M)/M, and per epoch the NEES averaged over seeds × UAVs against its bounds.
+- **Range NIS** (:func:`range_nis_values`, :func:`nis_summary`), no truth needed: each two-way range
+  against the estimates of both ends at the epoch before it, ν²/S with S = σ² + uᵀ(P_a + P_b)u,
+  expected χ²(1).
+- **Monte Carlo** (:func:`monte_carlo`): per algorithm the mean over seeds of the per-seed swarm
+  3-D RMSE with a Student-t 95 % CI; paired per-seed differences a − b with CI and paired t-test.
+  Beside, never instead of, the pooled RMSE above.
 - **step_ms**: p50/p99 over every (UAV, epoch, seed) of the wall time the estimator spent.
 - **improvement_pct** = 100·(1 − RMSE_a / RMSE_b) on the swarm 3-D position RMSE.
 """
