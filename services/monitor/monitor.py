@@ -28,6 +28,11 @@ from swarmnav.wire import messages as M
 
 DROP_CONFIRM_S = 0.5  # a token deletion becomes a dropout only if the bus is still up this long after
 SIM_LOST_S = 30.0  # the sensor-sim gone this long (bus up): the run is over, report what there is
+# An estimate of an epoch the clock (as this monitor has seen it) has not opened is held this long for
+# the clock to catch up -- the clock and the estimates come through different pump threads, which a
+# loaded machine schedules seconds apart -- then rejected as `future` (a forged estimate must not
+# pre-empt the real one: only one held less than this before its epoch opened could).
+FUTURE_HOLD_S = 1.0
 
 
 def _fault(s: str) -> tuple[int, float]:
@@ -92,6 +97,7 @@ class Monitor:
         self.last_participants: list[int] = []
         self.prev_participants: list[int] = []
         self.clock_k = 0
+        self.held: list[tuple[float, M.EstimateMsg, bytes]] = []  # (hold deadline, estimate, frame), arrival order
 
     def setup(self):
         ib = self.inbox
@@ -204,6 +210,8 @@ class Monitor:
                 if new_epoch:
                     self.clock_k = c.k
                 self.core.on_clock(c, payload)
+                if new_epoch:
+                    self.release_held()
                 if new_epoch:  # participants of epoch k-2: their estimates are surely due by now
                     prev = self.prev_participants
                     self.prev_participants, self.last_participants = self.last_participants, c.participants
@@ -213,15 +221,33 @@ class Monitor:
                 M.decode(M.TruthMsg, payload, uav=kk.uav)  # validated; truth for scoring comes from the dataset
             elif tag == "est":
                 m = M.decode(M.EstimateMsg, payload, uav=kk.uav)
-                if m.k > self.clock_k + 1:  # an epoch the sensor-sim has not opened: forged, never first-come
-                    raise M.WireError("future", f"estimate of epoch {m.k}, clock at {self.clock_k}")
                 if max(abs(x) for x in m.pos) > self.a.envelope_m:
                     raise M.WireError("envelope", f"estimate of UAV {m.uav} outside the {self.a.envelope_m:g} m envelope")
+                if m.k > self.clock_k + 1:  # an epoch the sensor-sim has not opened (as far as we know yet)
+                    if len(self.held) >= 64 * len(self.uavs):
+                        raise M.WireError("future", f"estimate of epoch {m.k}, clock at {self.clock_k}")
+                    self.held.append((time.monotonic() + FUTURE_HOLD_S, m, payload))
+                    return
                 self.core.on_estimate(m, payload)
             elif tag == "links":
                 M.decode(M.LinksMsg, payload, uav=kk.uav)  # validated; links are taken from the estimate
         except M.WireError as e:
             self.reject(tag, e)
+
+    def release_held(self, expire: bool = False) -> None:
+        """Held estimates whose epoch the clock has opened go to the core (in arrival order); those
+        held past FUTURE_HOLD_S (or all, ``expire``) are rejected as forged (``future``)."""
+        if not self.held:
+            return
+        now, keep = time.monotonic(), []
+        for dl, m, payload in self.held:
+            if m.k <= self.clock_k + 1:
+                self.core.on_estimate(m, payload)
+            elif expire or now > dl:
+                self.reject("est", M.WireError("future", f"estimate of epoch {m.k}, clock at {self.clock_k}"))
+            else:
+                keep.append((dl, m, payload))
+        self.held = keep
 
     def loop(self) -> int:
         last = time.monotonic()
@@ -231,6 +257,7 @@ class Monitor:
                 self.handle(*it)
                 last = time.monotonic()
             self.confirm_drops()
+            self.release_held()
             if self.core.done and time.monotonic() - last > 0.3:
                 self.recover(self.core.K)
                 return 0
@@ -241,6 +268,7 @@ class Monitor:
         return 0
 
     def finish(self):
+        self.release_held(expire=True)
         rep = self.core.finish(figures=not self.inbox.stop.is_set() or self.core.done)
         self.log.info("report written: %s 3-D pos RMSE %s; complete %s (%s of %s estimates)", self.a.algo,
                       rep["algorithms"][self.a.algo]["pos_rmse_m"]["3d"], rep.get("complete"),
