@@ -37,18 +37,19 @@ Epoch k (driven by ``swarmnav.protocol``):
     (and eq. 27 az/el) factors to the neighbours, whose broadcast positions enter with their
     covariance marginalised into each factor's noise ("factor to an uncertain neighbour",
     factors.effective_range_sigma). Cheap: ~0.1 ms, no smoother work per round.
-    **Rounds approach the joint snapshot solution** (default ``round_cov_inflation`` 0.5): in the
-    round solve a neighbour's broadcast covariance is scaled by 0.5 (not by the double-counting
-    inflation below), so the swarm's rounds behave like a block-Jacobi iteration on the epoch's joint
-    problem (all local priors + all links); consistency across epochs is left to the commit.
+    The rounds are a weighted least-squares iteration towards the epoch's joint snapshot (all
+    local priors + all links): a neighbour's broadcast covariance enters the round solve × 0.5
+    (``round_cov_inflation``, a *weight*: chosen for accuracy on the tuning seeds; it does not
+    enter what the node claims about its error, see ``end_epoch``).
 ``end_epoch``
     commit once: the cooperative factors (own-observed ones only: the neighbours' bearings of this
-    node stay in the rounds), linearised at the final round position and recomputed with the
-    double-counting inflation below, are summarised as one Gaussian position factor (information
-    Λ_c = Σ w JᵀJ/s² × ``commit_weight``, default 0.3 — 0.2 in configs/paper.toml — mean from the gradient) and added to the
-    smoother; one update. NodeEstimate (default ``report = "round"``): position = the last round's
-    solution, pos_cov = (P_loc⁻¹ + Λ_c / commit_weight)⁻¹ (``report_cov = "links"``: the split-CI
-    bound, conservative), velocity/attitude from the smoother.
+    node stay in the rounds), linearised at the final round position, each neighbour's covariance ×
+    its number of links this epoch (a federated information share, below), are summarised as one
+    Gaussian position factor (information Λ_c = Σ w JᵀJ/s² × ``commit_weight``, mean from the
+    gradient) and added to the smoother; one update. NodeEstimate (default ``report = "round"``):
+    position = the last round's solution p, pos_cov = **the covariance of p** (``_round_cov``: the
+    sandwich H⁻¹MH⁻¹ of the round's normal equations under the one-hop error model below),
+    velocity/attitude from the smoother.
 
 **Relinked commit** (``relink_s`` > 0; off by default, on in configs/miluv.toml): instead of the
 one-shot commit, each epoch's cooperative links become one position factor on that epoch's pose and
@@ -58,16 +59,18 @@ problem (``_relinked_commit``; weight ``relink_weight``, neighbour covariance ×
 ``relink_cov_scale``); atvfg runs the double threshold on the window's smoothed tdoa residuals
 (normalised by their innovation σ).
 
-**Double counting.** A neighbour's estimate already contains this node's information. Default
-remedy (``broadcast_cov = "local"``): in the commit a neighbour's broadcast covariance is multiplied
-by its number of links this epoch (split covariance intersection: each of its n links may carry
-information that is also ours), and the summary is committed at ``commit_weight`` (0.3; 0.2 for the
-dense paper swarm), which bounds
-the feedback through the smoothers across epochs (docs/estimators.md: 0.4 gives NEES 1.9 and a worse
-RMSE, 1.0 NEES 92). The rounds themselves use the neighbours' covariance × 0.5
-(``round_cov_inflation``) to approach the epoch's joint solution. Alternatives measured and removed
-(own-sensor-only broadcast covariance, sticky detection, eq. 25 literal weights, joint commit mean,
-round damping, an anchor innovation gate): docs/estimators.md.
+**Double counting** (docs/estimators.md "Double counting and the reported covariance"). Within an
+epoch, every message a node uses is built from a neighbour's *epoch prior* (its broadcast
+covariance: the smoother marginal before any of the epoch's cooperative information), so it holds
+none of the recipient's information of this epoch: the cavity of Gaussian belief propagation. The
+reported covariance is that of the reported estimate under this one-hop model (neighbour error =
+its epoch prior, independent of the own prior), whatever weights the rounds use. Across epochs,
+the information committed to the smoother is a federated share: a neighbour's prior is split among
+the n links it takes part in (covariance × n), and a fraction ``commit_weight`` of the epoch's
+cooperative information is kept (tuned on the tuning seeds, configs/paper.toml). Alternatives
+measured and removed (own-sensor-only broadcast covariance, sticky detection, eq. 25 literal
+weights, joint commit mean, round damping, an anchor innovation gate, the split-CI bound
+(P_loc⁻¹ + Λ_links)⁻¹ as the reported covariance): docs/estimators.md.
 
 Choices: range timestamps inside the epoch are treated as at the epoch time; the node's own tag
 lever arm is applied with its current attitude, a neighbour's is ignored (its attitude is not
@@ -152,11 +155,14 @@ class GraphEstimator(NodeEstimator):
         # round_cov_inflation (None = the commit's inflation above)
         ri = s.get("round_cov_inflation", 0.5)
         self.round_infl = None if ri is None or ri == "" else float(ri)
-        # what the epoch's estimate reports: "smoother" (after the commit) or "round" (the last
-        # round's cooperative solution, with covariance "commit" = (P_loc⁻¹ + w·Λ_commit)⁻¹,
-        # "links" = (P_loc⁻¹ + Λ_commit)⁻¹ or "round" = (P_loc⁻¹ + Λ_round)⁻¹)
+        # what the epoch's estimate reports (docs/estimators.md "Double counting"): "round" = the
+        # last round's solution with the covariance of that solution (_round_cov: the sandwich
+        # H⁻¹MH⁻¹ of the round's normal equations under the one-hop error model); "belief" = the
+        # one-hop Gaussian-BP belief's mean and covariance (_belief); "smoother" = the smoother's
+        # position after the commit with (P_loc⁻¹ + Λ_commit)⁻¹
         self.report = str(s.get("report", "round"))
-        self.report_cov = str(s.get("report_cov", "links"))
+        if self.report not in ("round", "belief", "smoother"):
+            raise ValueError(f"report = {self.report!r}: expected 'round', 'belief' or 'smoother'")
         # ISAM2 relinearises a variable only when its delta exceeds this (any component: rad, m,
         # m/s, bias units); below it the smoother's estimate is one Gauss-Newton step from a stale
         # linearisation point (tests/test_graph.py::test_fixed_lag_matches_batch_solve)
@@ -827,21 +833,32 @@ class GraphEstimator(NodeEstimator):
             return self.cov_infl
         return float(max(1, self.peer_links.get(o, 1)))
 
-    def _normal_equations(self, p: np.ndarray, coop_only: bool = False, L: dict | None = None):
-        """Gauss-Newton normal equations (H, g) of prior + cooperative factors at own position p."""
+    def _normal_equations(self, p: np.ndarray, coop_only: bool = False, L: dict | None = None,
+                          L_true: dict | None = None):
+        """Gauss-Newton normal equations (H, g) of prior + cooperative factors at own position p.
+
+        With ``L_true`` (the same links as ``L``, prepared with the neighbours' covariances the
+        error model assigns them) also the sandwich "meat" M = Σ JᵀW·R·WJ (+ Λ_loc), where W is the
+        weight each factor has in ``L`` and R its error covariance in ``L_true``: the covariance of
+        the solution of these normal equations is H⁻¹MH⁻¹ (docs/estimators.md "Double counting")."""
         if coop_only:
             H, gv = np.zeros((3, 3)), np.zeros(3)
         else:
             H, gv = self._info.copy(), self._info @ (self.p_loc - p)
+        meat = None if L_true is None else (np.zeros((3, 3)) if coop_only else self._info.copy())
         L = self._L if L is None else L
         if "rng" in L:
             pj, Pj, w, lev, sig2, z = L["rng"]
             d = p + lev - pj
             rr = np.sqrt(np.einsum("ij,ij->i", d, d))
             u = d / np.maximum(rr, 1e-9)[:, None]
-            a = w / (sig2 + np.einsum("ni,nij,nj->n", u, Pj, u))
+            var = sig2 + np.einsum("ni,nij,nj->n", u, Pj, u)
+            a = w / var
             H += (u * a[:, None]).T @ u
             gv += u.T @ (a * (z - rr))
+            if L_true is not None:
+                var_t = sig2 + np.einsum("ni,nij,nj->n", u, L_true["rng"][1], u)
+                meat += (u * (a * a * var_t)[:, None]).T @ u
         if "azel" in L:
             pt, Pt, wt, st2, z = L["azel"]
             dd = pt - p
@@ -856,16 +873,18 @@ class GraphEstimator(NodeEstimator):
             C = np.einsum("mij,mjk,mlk->mil", Jt, Pt, Jt)
             C[:, 0, 0] += st2
             C[:, 1, 1] += st2
-            det_ = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
-            Ci = np.empty_like(C)
-            Ci[:, 0, 0], Ci[:, 1, 1] = C[:, 1, 1] / det_, C[:, 0, 0] / det_
-            Ci[:, 0, 1], Ci[:, 1, 0] = -C[:, 0, 1] / det_, -C[:, 1, 0] / det_
-            Ci *= wt[:, None, None]
+            Ci = np.linalg.inv(C) * wt[:, None, None]
             # Jo = -Jt: H += Jt^T Ci Jt, g += -Jt^T Ci res
             CiJ = np.einsum("mjk,mkl->mjl", Ci, Jt)
             H += np.einsum("mji,mjl->il", Jt, CiJ)
             gv -= np.einsum("mji,mj->i", CiJ, res)
-        for ends, z, sig2, w in L.get("tdoa", ()):
+            if L_true is not None:
+                Ct = np.einsum("mij,mjk,mlk->mil", Jt, L_true["azel"][1], Jt)
+                Ct[:, 0, 0] += st2
+                Ct[:, 1, 1] += st2
+                meat += np.einsum("mji,mjk,mkl->il", CiJ, Ct, CiJ)
+        tdoa_t = L_true.get("tdoa", ()) if L_true is not None else [None] * len(L.get("tdoa", ()))
+        for (ends, z, sig2, w), true in zip(L.get("tdoa", ()), tdoa_t):
             # own position p: this node's tag(s) among the three; neighbours' broadcast covariance
             # folded into the variance along their gradient; w = the link's weight (_tdoa_weights)
             pts = [p + x if kind == "self" else x for kind, x, _ in ends]
@@ -874,7 +893,47 @@ class GraphEstimator(NodeEstimator):
             var = sig2 + sum(gi @ Ce @ gi for (kind, _, Ce), gi in zip(ends, grads) if kind == "peer")
             H += (w / var) * np.outer(j, j)
             gv += (w * (z - h) / var) * j
-        return H, gv
+            if true is not None:
+                var_t = sig2 + sum(gi @ Ce @ gi for (kind, _, Ce), gi in zip(true[0], grads) if kind == "peer")
+                meat += (w * w * var_t / var ** 2) * np.outer(j, j)
+        return (H, gv) if L_true is None else (H, gv, meat)
+
+    def _round_cov(self) -> np.ndarray:
+        """Covariance of the last round's solution p (docs/estimators.md "Double counting").
+
+        p solves the round's normal equations H(p)·δ = g(p) with the *weights* of the rounds: the
+        local prior Λ_loc and each link's factor with the neighbour's broadcast covariance ×
+        ``round_cov_inflation`` (and eq. 24 weights). Its *errors* come from the local estimate
+        (covariance P_loc), the link noise (σ²) and the neighbour's position error, modelled as the
+        neighbour's epoch prior covariance (its broadcast: the smoother marginal before any of this
+        epoch's cooperative information, hence free of this node's contribution this epoch) and
+        independent of P_loc — the one-hop error model of Gaussian BP. Linearised at p, the error
+        of p is H⁻¹·Σ JᵀW·ε, so Cov(p) = H⁻¹MH⁻¹ with M = Λ_loc + Σ JᵀW·R·WJ (a link with eq. 24
+        weight w enters W as w·(σ² + s·JCJᵀ)⁻¹ and R as σ² + JCJᵀ)."""
+        H, _, M = self._normal_equations(self.p, L=self._L, L_true=self._prepare_links(1.0))
+        Hi = np.linalg.inv(0.5 * (H + H.T))
+        return Hi @ M @ Hi
+
+    def _belief(self) -> tuple[np.ndarray, np.ndarray]:
+        """The epoch's reported belief of the own position (docs/estimators.md "Double counting"):
+        the Gaussian-BP belief after one message exchange from the epoch priors,
+        b(x) ∝ N(x; p_loc, P_loc) · Π_j m_j(x), each message m_j the link factor marginalised over
+        neighbour j's epoch prior covariance (its broadcast: no cooperative information of this
+        epoch, so none of this node's), linearised at j's last round position. Returns the
+        belief's mean (Gauss-Newton from the last round's solution) and its covariance, the
+        inverse Hessian at that mean."""
+        L = self._prepare_links(1.0)
+        p = self.p.copy()
+        for _ in range(self.gn_iters):
+            H, gv = self._normal_equations(p, L=L)
+            dp = np.linalg.solve(H, gv)
+            if not np.all(np.isfinite(dp)):
+                break
+            p = p + dp
+            if np.linalg.norm(dp) < 1e-4:
+                break
+        H = self._normal_equations(p, L=L)[0]
+        return p, np.linalg.inv(0.5 * (H + H.T))
 
     # -- end ---------------------------------------------------------------------------------
 
@@ -902,15 +961,11 @@ class GraphEstimator(NodeEstimator):
                 g.add(gtsam.GPSFactor(X(self.n), z, gtsam.noiseModel.Gaussian.Information(Lr)))
                 self.smoother.update(g, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
                 self._read_estimate()
-                pos_cov = np.linalg.inv(self._info + Lam)
+                pos_cov = np.linalg.inv(self._info + Lam)  # report "smoother": its position and this
                 if self.report == "round":
-                    pos = self.p.copy()
-                    if self.report_cov == "round":
-                        pos_cov = np.linalg.inv(self._normal_equations(self.p)[0])
-                    elif self.report_cov == "links":
-                        # the split-CI bound (neighbour covariance × its links) without the
-                        # commit weight, which only guards the smoother against feedback
-                        pos_cov = np.linalg.inv(self._info + Lam / self.commit_weight)
+                    pos, pos_cov = self.p.copy(), self._round_cov()
+                elif self.report == "belief":
+                    pos, pos_cov = self._belief()
             for o in self._nb:
                 res, cls = self._res_own.get(o, (float("nan"), int(LinkClass.H2_NORMAL)))
                 links.append(LinkInfo(o, LinkClass(cls), res, float(self._weights[o])))
