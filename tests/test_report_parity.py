@@ -237,3 +237,17 @@ def test_miluv_launch_and_evaluate_give_the_same_report_and_the_delta_l_used(tmp
     for rep in (ev, la):
         assert rep["thresholds"]["delta_l_m"] == pytest.approx(est.delta_l, abs=1e-12)
         assert set(rep["thresholds"]["delta_l_used_by_uav_m"]) == {str(x) for x in d.meta.uav_ids()}
+
+
+def test_assembly_scores_detection_of_every_delta_l_algorithm():
+    """atvfg_paper alone (launch --algo atvfg_paper) gets its thresholds and detection scores too."""
+    from swarmnav.assembly import assemble_report
+
+    meta, r, truth, labels = _tiny_run(0.4)
+    r.algo = "atvfg_paper"
+    rep = assemble_report(mode="distributed", meta=meta, seeds=[0], runs={"atvfg_paper": [r]}, truths=[truth],
+                          labels=[labels], settings={"delta_l_m": 0.4}, provenance={}, source="config")
+    b = rep["algorithms"]["atvfg_paper"]
+    assert b["detection"] is not None and b["detection"]["tn"] == 1  # the one labelled link, classified H2
+    assert rep["thresholds"]["delta_l_algorithm"] == "atvfg_paper" and rep["thresholds"]["delta_l_m"] == 0.4
+    assert rep["detection_single_threshold"] is not None
