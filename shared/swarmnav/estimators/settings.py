@@ -47,8 +47,7 @@ class EstimatorTuning(BaseModel):
     neighbour_cov_inflation: float | Literal["links"] = Field("links", description="neighbour covariance inflation at commit (× or per-sender link count)")
     round_cov_inflation: float | None = Field(0.5, description="neighbour covariance × this in the round solves (None: as at commit)")
     commit_weight: float = Field(0.3, ge=0, le=1, description="weight of the cooperative information committed to the smoother")
-    report: str = Field("round", description="the estimate reported (graph.py: round, smoother, ...)")
-    report_cov: str = Field("links", description="covariance reported with a round estimate")
+    report: Literal["round", "belief", "smoother"] = Field("round", description="the estimate reported: the last round's solution (with its sandwich covariance), the belief, or the smoother's")
     # -- smoother -------------------------------------------------------------------------------
     relinearize_threshold: float = Field(0.05, gt=0, description="ISAM2 relinearisation threshold (rad, m, m/s, bias units)")
     bias_rw_floor: tuple[float, float] = Field((1e-5, 1e-4), description="bias random-walk floors (rad/s/√s, m/s²/√s)")
