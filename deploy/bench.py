@@ -45,13 +45,15 @@ SEED = 1
 
 # (N, scenario seconds) — in-process sizes; short scenarios for large N (the per-UAV-epoch cost is
 # what is compared; epoch 1 bootstraps, so at least ~10 epochs)
-# (epoch 1 bootstraps and is left out of the per-epoch figures; N = 1000 costs ~1 min of CPU per epoch)
+# (epoch 1 bootstraps and is left out of the per-epoch figures). The largest size's duration is chosen
+# from the time left (2..5 epochs): at N = 1000 one epoch costs ~2 min of CPU today.
 INPROC = [(18, 60.0), (50, 30.0), (100, 20.0), (300, 10.0), (1000, 5.0)]
 DIST = [(18, 60.0), (50, 20.0), (100, 20.0)]  # distributed, each with its in-process twin
-PROFILE = (300, 4.0)
+PROFILE = [(100, 2.0), (300, 2.0)]  # CPU-time cProfile; the last is summarised, the pair gives the growth
 QUICK_INPROC = [(5, 10.0), (18, 10.0), (50, 6.0)]
 QUICK_DIST = [(5, 10.0)]
-QUICK_PROFILE = (18, 5.0)
+QUICK_PROFILE = [(5, 3.0), (18, 3.0)]
+MIN_EPOCHS_LARGEST = 2
 BUDGET_S = 14 * 60.0  # the whole bench; a stage that would not fit is skipped (and said so)
 
 
@@ -114,7 +116,7 @@ def inproc_one(n: int, dur: float, profile: str | None = None) -> dict:
     if profile:
         import cProfile
 
-        pr = cProfile.Profile()
+        pr = cProfile.Profile(time.process_time)  # CPU time: on a shared machine wall time mostly measures waiting
         pr.enable()
     t0, c0 = time.perf_counter(), time.process_time()
     res = run_algorithm(ds, ALGO, SEED, settings, prog)
@@ -329,6 +331,22 @@ def profile_summary(prof: Path, top: int = 15) -> dict:
     return {"total_s": total, "by_tottime": by_tt, "by_cumtime": by_ct}
 
 
+def profile_growth(small: Path, large: Path, n_small: int, n_large: int, top: int = 15) -> dict:
+    """Own CPU time per function at two sizes: the ratio tells O(N) (≈ n_large/n_small: the swarm's
+    cost grows with N, per UAV flat) from O(N²) (≈ (n_large/n_small)²: per UAV it grows with N)."""
+    a, b = pstats.Stats(str(small)).stats, pstats.Stats(str(large)).stats
+    rows = []
+    for k, v in b.items():
+        va = a.get(k)
+        ta = va[2] if va else 0.0
+        rows.append({"function": f"{_short(k[0])}:{k[1]}({k[2]})", "own_s_small": ta, "own_s_large": v[2],
+                     "ratio": v[2] / ta if ta > 0 else None})
+    rows.sort(key=lambda r: -r["own_s_large"])
+    ta = sum(v[2] for v in a.values())
+    tb = sum(v[2] for v in b.values())
+    return {"n_small": n_small, "n_large": n_large, "total_small_s": ta, "total_large_s": tb, "rows": rows[:top]}
+
+
 def _short(fn: str) -> str:
     for marker in ("/shared/", "/site-packages/", "/services/", "/deploy/"):
         if marker in fn:
@@ -349,7 +367,7 @@ def write_plot(res: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    ok = [r for r in res["inproc"] if "error" not in r]
+    ok = sorted((r for r in res["inproc"] if "error" not in r), key=lambda r: r["n"])
     fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
     if ok:
         n = [r["n"] for r in ok]
@@ -408,7 +426,7 @@ def render_md(res: dict) -> str:
          "| N | scenario s | links/UAV | step p50 ms | step p99 ms | wall/UAV-epoch ms | CPU/UAV-epoch ms | outside ms | "
          "epoch wall ms | real-time × | rounds | simulate s | peak RSS MB | load1 before→after |",
          "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
-    for r in res["inproc"]:
+    for r in sorted(res["inproc"], key=lambda r: r["n"]):
         if "error" in r:
             L.append(f"| {r['n']} | {r['duration_s']:g} | — | — | — | — | — | — | — | — | — | — | — | failed: {r['error']} "
                      f"(load {r.get('load1_after')}) |")
@@ -418,7 +436,7 @@ def render_md(res: dict) -> str:
                  f"{r['outside_estimator_per_uav_epoch_ms']:.2f} | "
                  f"{r['epoch_wall_ms_p50']:.0f} | {r['realtime_factor']:.2f} | {r['rounds_mean']:.1f} | {r['simulate_s']:.1f} | "
                  f"{r['peak_rss_mb']:.0f} | {r['load1_before']}→{r['load1_after']} |")
-    ok = [r for r in res["inproc"] if "error" not in r]
+    ok = sorted((r for r in res["inproc"] if "error" not in r), key=lambda r: r["n"])
     if len(ok) >= 2:
         a, b = next((r for r in ok if r["n"] == 50), ok[0]), ok[-1]
         g = b["wall_per_uav_epoch_ms"] / a["wall_per_uav_epoch_ms"]
@@ -487,12 +505,46 @@ def render_md(res: dict) -> str:
             L.append(f"| `{r['function']}` | {r['calls']:,} | {r['cumtime_s']:.2f} | {100 * r['cumtime_s'] / p['total_s']:.1f} |")
     elif p:
         L += ["", f"## Profile: failed ({p.get('error')})"]
+    g = res.get("profile_growth")
+    if g:
+        lin, quad = g["n_large"] / g["n_small"], (g["n_large"] / g["n_small"]) ** 2
+        L += ["", f"### What grows with N: own CPU time per function, N = {g['n_small']} → {g['n_large']} (same seconds of "
+                  f"scenario; whole run {g['total_small_s']:.1f} → {g['total_large_s']:.1f} s CPU, "
+                  f"×{g['total_large_s'] / max(g['total_small_s'], 1e-9):.1f})", "",
+              f"×{lin:.0f} = the swarm's cost grows O(N) (flat per UAV: O(neighbours)); ×{quad:.0f} = it grows O(N²) "
+              "(every UAV does work for every other UAV).", "",
+              "| function | own s (small N) | own s (large N) | growth | order |", "|---|---:|---:|---:|---|"]
+        for r in g["rows"]:
+            ratio = r["ratio"]
+            order = "—" if ratio is None else ("O(N²)" if ratio > (lin * quad) ** 0.5 else "O(N)" if ratio > lin ** 0.5
+                                               else "flat")
+            L.append(f"| `{r['function']}` | {r['own_s_small']:.2f} | {r['own_s_large']:.2f} | "
+                     f"{'—' if ratio is None else f'×{ratio:.1f}'} | {order} |")
     notes = res.get("notes") or []
     if notes:
         L += ["", "## Notes", ""] + [f"- {n}" for n in notes]
     L += ["", "Figure: `cost_vs_n.png`. Raw figures: `bench.json`. Rebuild: `make bench` (or "
               "`python -m deploy.bench --out DIR`; `--quick` for a 1-minute check).", ""]
     return "\n".join(L)
+
+
+def _largest_duration(done: list[dict], n: int, dur_max: float, left_s: float) -> float:
+    """Scenario seconds for the largest size: as many epochs (2..) as fit in the time left, from the
+    CPU per UAV-epoch of the two largest sizes measured (extrapolated as a power of N) and their
+    wall/CPU ratio (the machine's load)."""
+    import math
+
+    ok = sorted((r for r in done if "error" not in r and r.get("cpu_per_uav_epoch_ms")), key=lambda r: r["n"])
+    if len(ok) < 2:
+        return dur_max
+    a, b = ok[-2], ok[-1]
+    ex = math.log(b["cpu_per_uav_epoch_ms"] / a["cpu_per_uav_epoch_ms"]) / math.log(b["n"] / a["n"])
+    cpu = b["cpu_per_uav_epoch_ms"] * (n / b["n"]) ** max(ex, 0.0) / 1e3 * n  # s per epoch
+    slow = max(1.0, b["wall_s"] / max(b["cpu_s"], 1e-9))
+    per_epoch = cpu * slow
+    fixed = 10.0 + b["simulate_s"] * n / b["n"]  # simulate + building the nodes
+    epochs = int((left_s - 150.0 - fixed) // per_epoch)  # ~150 s kept for a profile and one distributed run
+    return float(max(MIN_EPOCHS_LARGEST, min(int(dur_max), epochs)))
 
 
 def main(argv=None) -> int:
@@ -536,27 +588,40 @@ def main(argv=None) -> int:
         (out / "bench.json").write_text(json.dumps(res, indent=1) + "\n")
         (out / "bench.md").write_text(render_md(res))
 
-    # 1. in-process sizes
-    for n, dur in inproc:
+    # 1. in-process sizes (the largest gets the epochs the budget allows: its row is the point)
+    for i, (n, dur) in enumerate(inproc):
+        last = i == len(inproc) - 1
+        if last and len(res["inproc"]) >= 2 and not a.quick:
+            dur = _largest_duration(res["inproc"], n, dur, left())
         print(f"[bench] in-process N={n} ({dur:g} s scenario) — load1 {load1()}, {left():.0f} s of budget left", flush=True)
-        r = run_inproc(n, dur, out, timeout=max(60.0, left() - 60.0))
+        r = run_inproc(n, dur, out, timeout=max(60.0, left() - (20.0 if last else 60.0)))
         res["inproc"].append(r)
         print(f"[bench]   -> " + (f"failed: {r['error']}" if "error" in r else
                                  f"step p50 {r['step_ms_p50']:.2f} ms p99 {r['step_ms_p99']:.2f} ms, wall/UAV-epoch "
-                                 f"{r['wall_per_uav_epoch_ms']:.2f} ms, {r['realtime_factor']:.2f}x real time, "
-                                 f"peak RSS {r['peak_rss_mb']:.0f} MB, load1 {r['load1_after']}"), flush=True)
+                                 f"{r['wall_per_uav_epoch_ms']:.2f} ms, CPU/UAV-epoch {r['cpu_per_uav_epoch_ms']:.2f} ms, "
+                                 f"{r['realtime_factor']:.3f}x real time, peak RSS {r['peak_rss_mb']:.0f} MB, "
+                                 f"load1 {r['load1_after']}"), flush=True)
         save()
-    # 2. profile (one in-process run under cProfile)
+    # 2. profiles (CPU time) at two sizes: the hot spots of the larger, and what grows with N
     if not a.no_profile:
-        n, dur = prof
-        print(f"[bench] profile in-process N={n} ({dur:g} s) — load1 {load1()}", flush=True)
-        pf = out / f"profile-{n}.prof"
-        r = run_inproc(n, dur, out, profile=str(pf), timeout=max(60.0, min(300.0, left() - 60.0)))
-        if "error" in r or not pf.is_file():
-            res["profile"] = {"n": n, "duration_s": dur, "error": r.get("error", "no profile written")}
-        else:
-            res["profile"] = {"n": n, "duration_s": dur, "load1": r.get("load1_after"), **profile_summary(pf)}
-        save()
+        profs = []
+        for n, dur in prof:
+            if left() < 60:
+                res["notes"].append(f"profile N = {n} skipped: the budget had {left():.0f} s left")
+                break
+            print(f"[bench] profile in-process N={n} ({dur:g} s) — load1 {load1()}", flush=True)
+            pf = out / f"profile-{n}.prof"
+            r = run_inproc(n, dur, out, profile=str(pf), timeout=max(60.0, min(400.0, left() - 30.0)))
+            if "error" in r or not pf.is_file():
+                res["profile"] = {"n": n, "duration_s": dur, "error": r.get("error", "no profile written")}
+                break
+            profs.append((n, pf))
+            res["profile"] = {"n": n, "duration_s": dur, "load1": r.get("load1_after"), "clock": "CPU time",
+                              **profile_summary(pf)}
+            save()
+        if len(profs) >= 2:
+            res["profile_growth"] = profile_growth(profs[0][1], profs[-1][1], profs[0][0], profs[-1][0])
+            save()
     # 3. distributed, each with its in-process twin, while the budget allows
     if not a.no_dist:
         for n, dur in dist:
