@@ -259,7 +259,9 @@ def _run_cmd(cmd: list[str], timeout: float, log: Path, sample: bool) -> tuple[i
 
 
 def run_dist(n: int, dur: float, out_dir: Path, timeout: float) -> dict:
-    """``swarmnav evaluate`` then ``swarmnav launch`` of the same scenario, back to back."""
+    """``swarmnav evaluate`` then ``swarmnav launch`` of the same scenario, back to back (both within
+    ``timeout`` seconds in all)."""
+    deadline = time.perf_counter() + timeout
     cli = [sys.executable, "-m", "services.cli"]
     sets = sum((["--set", o] for o in _overrides(n, dur)), [])
     d: dict = {"n": n, "duration_s": dur}
@@ -274,9 +276,10 @@ def run_dist(n: int, dur: float, out_dir: Path, timeout: float) -> dict:
         d["inproc_estimation_wall_s"] = rep["algorithms"][ALGO].get("wall_s")
         d["inproc_rmse_m"] = _rmse(rep["algorithms"][ALGO])
     d["load1_before_dist"] = load1()
+    t_left = max(30.0, deadline - time.perf_counter())
     rc, wall, mem, lmax = _run_cmd(cli + ["launch", "--config", str(CONFIG), *sets, "--algo", ALGO, "--seed", str(SEED),
-                                          "--out", str(la_dir), "--no-progress", "--timeout", f"{timeout:.0f}"],
-                                   timeout + 30, out_dir / f"launch-{n}.log", sample=True)
+                                          "--out", str(la_dir), "--no-progress", "--timeout", f"{max(10.0, t_left - 15):.0f}"],
+                                   t_left, out_dir / f"launch-{n}.log", sample=True)
     d.update({"dist_exit": rc, "dist_command_wall_s": wall, "memory": mem, "load1_max_during_dist": lmax,
               "load1_after_dist": load1()})
     d["dist_command_rtf"] = dur / wall
@@ -465,20 +468,25 @@ def render_md(res: dict) -> str:
           "The same scenario (N, scenario seconds, seed) run by `swarmnav evaluate --algos atvfg --jobs 1` and then by "
           "`swarmnav launch` (one process per UAV, secure Zenoh, lockstep); walls of the whole commands (simulation, "
           "start-up and report included). *real-time ×* = scenario s / launch wall. Bytes = the monitor's mean bytes a "
-          "node sends per epoch. Peak RSS/PSS sampled with psutil every 0.5 s / 4 s.", "",
+          "node sends per epoch (its round states, estimate and links); every node subscribes to every other node's "
+          "state (`uav/*/state`), so what a node receives is ≈ (N − 1) × that — O(N) per node, O(N²) through the router. "
+          "Peak RSS/PSS sampled with psutil every 0.5 s / 4 s.", "",
           "| N | scenario s | in-process wall s | distributed wall s | ratio dist/in-proc | real-time × (launch) | "
-          "launcher's own × | complete | bytes out/UAV-epoch | wait p50 ms | load1 in-proc→dist (max during) |",
-          "|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---|"]
+          "launcher's own × | complete | bytes out/UAV-epoch | ≈ bytes in/UAV-epoch | wait p50 ms | "
+          "load1 in-proc→dist (max during) |",
+          "|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---|"]
     for d in res["dist"]:
         if d.get("skipped"):
-            L.append(f"| {d['n']} | {d['duration_s']:g} | — | — | — | — | — | — | — | — | skipped: {d['skipped']} |")
+            L.append(f"| {d['n']} | {d['duration_s']:g} | — | — | — | — | — | — | — | — | — | skipped: {d['skipped']} |")
             continue
         w = d.get("wait_ms") or {}
         L.append(f"| {d['n']} | {d['duration_s']:g} | {_f(d.get('inproc_command_wall_s'), '{:.1f}')} | "
                  f"{_f(d.get('dist_command_wall_s'), '{:.1f}')} | {_f(d.get('wall_ratio_dist_over_inproc'), '{:.1f}')} | "
                  f"{_f(d.get('dist_command_rtf'))} | {_f(d.get('dist_launcher_rtf'))} | "
                  f"{d.get('dist_complete') if d.get('dist_exit') is not None else 'timed out'} | "
-                 f"{_f(d.get('bytes_out_per_uav_epoch'), '{:,.0f}')} | {_f(w.get('p50'), '{:.0f}')} | "
+                 f"{_f(d.get('bytes_out_per_uav_epoch'), '{:,.0f}')} | "
+                 f"{_f(d['bytes_out_per_uav_epoch'] * (d['n'] - 1) if d.get('bytes_out_per_uav_epoch') else None, '{:,.0f}')} | "
+                 f"{_f(w.get('p50'), '{:.0f}')} | "
                  f"{d.get('load1_before_inproc')}→{d.get('load1_before_dist')} (max {d.get('load1_max_during_dist')}) |")
     mem = [d for d in res["dist"] if d.get("memory")]
     if mem:
