@@ -21,7 +21,7 @@ quotes the settings file when the estimator fell back to another value (graph.py
 Adding a field: compute it here from ``runs``/``truths``/``labels`` (per-algorithm blocks come from
 :func:`swarmnav.metrics.algorithm_metrics`, so a field added there reaches both reports), never in
 one caller only. Keep it quick: a stopped distributed run must write its report inside the
-launcher's SIGTERM grace (2.5 s); the monitor runs it once on two epochs at start-up
+launcher's SIGTERM grace (4 s for the monitor); the monitor runs it once on two epochs at start-up
 (``MonitorCore._warm_report``) so lazy imports (e.g. scipy.stats) are paid before.
 """
 
