@@ -91,7 +91,7 @@ class MonitorCore:
         R.log_event("run_started", 0, self.meta.t_start, rec=self.rec, level="INFO",
                     text=f"distributed run {run}: {len(self.uavs)} UAVs, {algo}, security {self.security.get('mode')} "
                          f"(ACL {'on' if self.security.get('acl') else 'off'})")
-        # a stopped run must get its report inside the launcher's SIGTERM grace (2.5 s): whatever the
+        # a stopped run must get its report inside the launcher's SIGTERM grace (4 s): whatever the
         # report assembly imports lazily (scipy.stats for NEES bands: ~1-4 s) is loaded now, aside
         self._labels = None
         threading.Thread(target=self._warm_report, name="warm-report", daemon=True).start()
