@@ -7,7 +7,6 @@ import pytest
 
 from swarmnav.estimators import detection as D
 from swarmnav.estimators.base import LinkClass
-from swarmnav.estimators.factors import whitened_cost
 
 
 def test_residual_matrix_sorted_and_exact():
@@ -32,19 +31,6 @@ def test_eq24_continuous_at_both_thresholds(dl, dh):
     # the formula itself
     r = 0.5 * (dl + dh)
     assert D.weight_eq24([r], dl, dh)[0] == pytest.approx(dl / r * ((dh - r) / (dh - dl)) ** 2)
-
-
-def test_eq24_used_as_irls_weight_on_squared_residual():
-    # Documented choice: the link cost is ½ l (r/σ)², i.e. the sigma is divided by sqrt(l) — not ½ l² (r/σ)².
-    dl, dh, sigma = 0.3, 5.0, 0.1
-    r = 2.0
-    l = D.weight_eq24([r], dl, dh)[0]
-    assert whitened_cost([r], [sigma], [l]) == pytest.approx(0.5 * l * (r / sigma) ** 2)
-    assert whitened_cost([r], [sigma / np.sqrt(l)], [1.0]) == pytest.approx(0.5 * l * (r / sigma) ** 2)
-    # and the graph builds its links that way (see graph.link_sigma)
-    from swarmnav.estimators.graph import link_sigma
-
-    assert link_sigma(sigma, l) == pytest.approx(sigma / np.sqrt(l))
 
 
 def test_classification_three_hypotheses():

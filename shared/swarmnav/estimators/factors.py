@@ -275,12 +275,6 @@ def stacked_range_factor(key: int, points: np.ndarray, measured: np.ndarray, sig
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(n), [key], err)
 
 
-def whitened_cost(residuals: Sequence[float], sigmas: Sequence[float], weights: Sequence[float]) -> float:
-    """½ Σ w (r/σ)² — the cost an IRLS-weighted link contributes (documentation/testing helper)."""
-    r = np.asarray(residuals, float) / np.asarray(sigmas, float)
-    return 0.5 * float(np.sum(np.asarray(weights, float) * r * r))
-
-
 # σ of the rotor-drag factor = this × the epoch mean of the accelerometer's white noise
 # (accel_noise_density/√Δt): the drag model has its own error (unmodelled aerodynamics, IMU lever
 # arm, time correlation). 1.5 = the lowest held-out anchor-range error of a truth-free 4-fold

@@ -94,15 +94,10 @@ from .factors import (DRAG_SIGMA_SCALE, rotor_drag_factor, rotor_drag_prior, rot
                       tdoa_factor, tdoa_h, tdoa_row, wrap_angle)
 from .imu import InitialRest, mean_specific_force, preintegrate, preintegration_params
 
-__all__ = ["AtvfgEstimator", "FgEstimator", "InsEstimator", "GraphEstimator", "link_sigma"]
+__all__ = ["AtvfgEstimator", "FgEstimator", "InsEstimator", "GraphEstimator"]
 
 
 DRAG_KEY = gtsam.symbol("m", 0)  # rotor-drag state [μ, c_x, c_y] of a multirotor (_drag_factor)
-
-
-def link_sigma(sigma: float, weight: float) -> float:
-    """Sigma of a link with IRLS weight ``weight`` (eq. 24 scales the squared residual)."""
-    return float(sigma / np.sqrt(weight)) if weight > 0 else float("inf")
 
 
 def _rot3(q: np.ndarray) -> gtsam.Rot3:
