@@ -59,3 +59,30 @@ def test_monitor_core_flags_a_second_different_estimate(tmp_path):
     core.done = True
     assert core.completeness()["complete"] is False
     core.sink.close()
+
+
+def test_monitor_core_closes_an_epoch_in_the_recording_only_when_its_estimates_are_in(tmp_path):
+    """A late estimate must reach its epoch's swarm error row: an epoch is closed once every
+    expected estimate is in (a scheduled kill excused), or CLOSE_LAG epochs behind the clock."""
+    import numpy as np
+
+    from services import recording as R
+    from services.monitor.core import CLOSE_LAG, MonitorCore
+    from swarmnav.config import load_config
+    from swarmnav.sim import simulate
+
+    ds = tmp_path / "ds"
+    simulate(load_config("configs/smoke.toml"), 1).write(ds)
+    core = MonitorCore(run="r1", dataset=ds, seed=1, algo="atvfg", out=tmp_path, sink=R.FileRecording(tmp_path / "x.rrd"),
+                       kills=[(4, 8.0)])
+    core.res.pos[:12] = 0.0  # epochs 1..12 complete
+    core.res.pos[5, 2] = np.nan  # epoch 6: UAV 3's estimate still on its way
+    core.res.pos[7:, 3] = np.nan  # UAV 4 killed at 8 s: excused from epoch 8 on
+    assert core.closable(5) == 3  # the clock's slack of two epochs
+    assert core.closable(12) == 5  # not epoch 6 while UAV 3's estimate is missing
+    core.res.pos[5, 2] = 0.0
+    assert core.closable(12) == 10  # it came: epochs 6..10 (UAV 4 excused) close
+    core.res.pos[12:] = 0.0
+    core.res.pos[13, 0] = np.nan  # epoch 14 never gets UAV 1's estimate (frozen)
+    assert core.closable(20) == 13
+    assert core.closable(14 + CLOSE_LAG) == 12 + CLOSE_LAG  # closed anyway, CLOSE_LAG behind the clock

@@ -26,8 +26,9 @@ from swarmnav.wire import messages as M
 
 from . import journal as J
 
-LINK_ALGOS = ("atvfg", "fg", "fkf")  # the estimators that classify links (ins reports none)
+LINK_ALGOS = ("atvfg", "atvfg_paper", "fg", "fkf")  # the estimators that classify links (ins reports none)
 COMMIT_S = 1.0  # the live recording is committed (a valid segment on disk) at most this often
+CLOSE_LAG = 10  # epochs: an epoch still missing estimates is closed in the recording this far behind the clock
 
 
 def excused_epochs(meta, uavs: list[int], kills: list[tuple[int, float]], restarts: list[tuple[int, float]]) -> np.ndarray:
@@ -144,7 +145,7 @@ class MonitorCore:
             self.event("epochs_lost", 0, t=self.meta.epoch_time(a), detail=f"epochs {a}-{b} played into a bus outage")
         if c.hold in ("kill", "restart") and c.hold_uav is not None:
             self.event(f"scheduled_{c.hold}", c.hold_uav, t=c.t)
-        self.close_epochs(c.k - 2)  # one epoch of slack: estimates and the clock come on different channels
+        self.close_epochs(self.closable(c.k))
         self.k_now, self.t_now = max(self.k_now, c.k), c.t
         if c.done:
             self.done = True
@@ -203,6 +204,18 @@ class MonitorCore:
         return [u for u in who if u in self.uavs and not got[self.uavs.index(u)]]
 
     # -- recording -------------------------------------------------------------------------------
+    def closable(self, k_clock: int) -> int:
+        """The last epoch the recording may close with the clock at ``k_clock``: every epoch up to it
+        holds every expected estimate (scheduled kill windows aside), or lies ``CLOSE_LAG`` epochs
+        behind the clock (a dead or frozen UAV). Estimates and the clock come on different channels:
+        an epoch closed early would miss its late estimates in its swarm error row for good."""
+        hard = max(k_clock - CLOSE_LAG, 0)
+        hi = min(k_clock - 2, self.K)
+        for k in range(max(self.logged_k, hard) + 1, hi + 1):
+            if not (np.isfinite(self.res.pos[k - 1, :, 0]) | self.excused[k - 1]).all():
+                return k - 1
+        return hi
+
     def close_epochs(self, upto: int, force: bool = False) -> None:
         """Send epochs up to ``upto`` to the recording (positions, truth, error series, links) and
         commit it, at most once per COMMIT_S of wall time unless ``force`` (the journal already
