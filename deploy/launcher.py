@@ -290,6 +290,20 @@ def launch(spec: LaunchSpec) -> LaunchResult:
     return LaunchResult(status, summary, reason, events, sec.report_block())
 
 
+def rerun_binary() -> Path:
+    """The Rerun viewer's executable itself: the venv's ``rerun`` script is a Python wrapper that
+    runs it as a child, which a SIGTERM to the wrapper would leave running."""
+    try:
+        import rerun_cli
+
+        exe = Path(rerun_cli.__file__).with_name("rerun")
+        if exe.is_file():
+            return exe
+    except ImportError:
+        pass
+    return Path(sys.executable).with_name("rerun")
+
+
 def live_viewer(spec: LaunchSpec) -> Proc | None:
     """Say where the live recording is served; open a native Rerun viewer on it when there is a
     display (it outlives the run), else return a web-viewer process to start with the run (a browser
@@ -300,7 +314,7 @@ def live_viewer(spec: LaunchSpec) -> Proc | None:
     local = "127.0.0.1" if bind in ("0.0.0.0", "::") else bind
     shown = socket.gethostname() if bind in ("0.0.0.0", "::") else bind
     url = live_url(local, port)
-    rerun = Path(sys.executable).with_name("rerun")
+    rerun = rerun_binary()
     print(f"swarmnav launch: live recording served at {live_url(shown, port)} "
           f"(a viewer anywhere: rerun {live_url(shown, port)})", file=sys.stderr)
     if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):

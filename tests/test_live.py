@@ -57,6 +57,11 @@ def test_live_view_streams_what_the_recording_holds(tmp_path):
             if p is not None and p.poll() is None:
                 p.kill()
     assert f"rerun+http://127.0.0.1:{live}/proxy" in text and f"web viewer at http://127.0.0.1:{web}/" in text
+    import psutil
+
+    time.sleep(0.5)
+    left = [p.pid for p in psutil.process_iter(["cmdline"]) if str(web) in " ".join(p.info["cmdline"] or [])]
+    assert not left, f"the web viewer outlived the run: {left}"
     disk, _ = rrdcheck.recorded(out / "swarm.rrd")
     seen, _ = rrdcheck.recorded(client_rrd)
     # every UAV's estimate track and the error series reached the live viewer in full
