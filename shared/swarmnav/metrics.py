@@ -267,9 +267,9 @@ def range_nis_values(t_epochs, uavs, pos, vel, cov, quat, ranges, tags: dict, an
     A range at t in epoch k (t_{k-1} < t <= t_k) is predicted from the epoch k-1 estimates of both
     ends: p + v (t − t_{k-1}) + R(q)·lever arm (UAVs; anchors: known position + lever arm). Innovation
     ν = range − ‖p_a − p_b‖, S = σ_row² + uᵀ(P_a + P_b)u (u the unit line of sight), NIS = ν²/S,
-    expected χ²(1). Neglected: the cross-covariance of the two ends, attitude uncertainty and the
-    process noise over t − t_{k-1} (S too small: NIS biased high on fast-moving, loosely
-    tracked UAVs). Rows of epoch 1 (no earlier estimate), rows touching an unknown node or a UAV
+    expected χ²(1). Neglected: the cross-covariance of the two ends (errors common to both, e.g. a
+    formation-wide shift, make S too large: NIS biased low), attitude uncertainty and the process
+    noise over t − t_{k-1} (S too small: NIS biased high on fast-moving, loosely tracked UAVs). Rows of epoch 1 (no earlier estimate), rows touching an unknown node or a UAV
     without an estimate, and rows with a lever arm but no attitude are skipped.
 
     ``t_epochs`` (K,), ``pos``/``vel`` (K,N,3), ``cov`` (K,N,3,3), ``quat`` (K,N,4) as in

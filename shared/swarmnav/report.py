@@ -334,7 +334,9 @@ def consistency_markdown(algos: dict) -> list[str]:
         lo, hi = next(iter(nis.values()))["nis_band"]
         L += ["", "Range NIS (needs no truth): each two-way range against the estimates of both ends at the epoch "
               f"before it (ν²/S, S = σ² + uᵀ(P_a + P_b)u; expected mean 1, median 0.455, 95 % in the χ²(1) band "
-              f"[{lo:.4f}, {hi:.2f}]); cross-covariances and the motion over the epoch are neglected, so it runs high.", "",
+              f"[{lo:.4f}, {hi:.2f}]). Approximate: the two ends' cross-covariance is neglected (errors common to "
+              "neighbours, e.g. a formation-wide shift, make S too large: NIS low) and so are the motion and "
+              "process noise over the epoch (S too small: NIS high).", "",
               "| Algorithm | NIS mean | median | in band | below | above | ranges | rows |", "|---|---:|---:|---:|---:|---:|---:|---|"]
         for name, d in nis.items():
             L.append(f"| {name} | {_f(d['nis_mean'], 2)} | {_f(d['nis_median'], 3)} | {_pct(d['nis_in_band_share'])} | "
