@@ -392,13 +392,7 @@ def write_plot(res: dict, path: Path) -> None:
     if dd:
         ax[1].plot([d["n"] for d in dd], [d["dist_command_rtf"] for d in dd], "s-", label="distributed (whole launch)")
     ax[1].axhline(1.0, color="k", lw=0.8, ls=":")
-    from matplotlib.ticker import FixedLocator, NullLocator, ScalarFormatter
 
-    sizes = sorted({r["n"] for r in ok} | {d["n"] for d in dd})
-    for x in ax:
-        x.xaxis.set_major_locator(FixedLocator(sizes))
-        x.xaxis.set_minor_locator(NullLocator())
-        x.xaxis.set_major_formatter(ScalarFormatter())
     ax[1].set_xscale("log")
     ax[1].set_yscale("log")
     ax[1].set_xlabel("swarm size N (UAVs)")
@@ -406,6 +400,13 @@ def write_plot(res: dict, path: Path) -> None:
     ax[1].set_title("real-time factor (atvfg)", fontsize=9)
     ax[1].grid(True, which="both", alpha=0.3)
     ax[1].legend(fontsize=7)
+    from matplotlib.ticker import FixedLocator, NullLocator, ScalarFormatter
+
+    sizes = sorted({r["n"] for r in ok} | {d["n"] for d in dd})
+    for x in ax:  # after set_xscale, which resets the locators
+        x.xaxis.set_major_locator(FixedLocator(sizes))
+        x.xaxis.set_minor_locator(NullLocator())
+        x.xaxis.set_major_formatter(ScalarFormatter())
     fig.suptitle(f"swarmnav scale bench {res['started']} — configs/scale.toml, atvfg, seed {SEED}, {res['host']['cpus']} CPUs",
                  fontsize=9)
     fig.tight_layout()
