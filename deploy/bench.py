@@ -300,7 +300,7 @@ def run_dist(n: int, dur: float, out_dir: Path, timeout: float) -> dict:
     import shutil
 
     for rd in (ev_dir, la_dir):
-        for sub in ("dataset", "journal", "figures", "traj"):
+        for sub in ("dataset", "journal", "figures", "traj", "security", "recording"):  # no keys left behind
             shutil.rmtree(rd / sub, ignore_errors=True)
         for f in list(rd.glob("*.rrd")) + list(rd.glob("*.npz")):
             f.unlink(missing_ok=True)
