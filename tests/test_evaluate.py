@@ -88,7 +88,7 @@ def test_evaluate_smoke_end_to_end(tmp_path, short_smoke):
     d = mc["paired"]["atvfg-fg"]
     assert d["n"] == 2 and d["mean"] == pytest.approx(np.mean([ps[s] - mc["per_algorithm"]["fg"]["per_seed"][s]
                                                                for s in ("1", "2")]))
-    # consistency keys (DESIGN §9) for every algorithm
+    # consistency keys (the report contract) for every algorithm
     for blk in (a, f):
         assert blk["nees_mean"] == pytest.approx(blk["nees"]) and 0 <= blk["nees_in_band_share"] <= 1
         assert blk["nees_n"] == 2 * SHORT_S * 5

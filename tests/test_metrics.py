@@ -1,4 +1,4 @@
-"""Metrics on hand-computed examples (DESIGN.md §4 definitions)."""
+"""Metrics on hand-computed examples (the definitions of README "How to read the results")."""
 
 import math
 

@@ -149,7 +149,7 @@ def test_assembly_without_a_thresholding_algorithm_names_no_delta_l():
 
 
 def test_assembly_is_pure():
-    """No files, clocks, zenoh or rerun in the assembly (DESIGN §2: pure core)."""
+    """No files, clocks, zenoh or rerun in the assembly (docs/architecture.md: pure core)."""
     import swarmnav.assembly as A
 
     tree = ast.parse(Path(A.__file__).read_text())

@@ -63,7 +63,7 @@ def threshold_block(rs: Sequence[RunResult]) -> dict | None:
 
 def completeness(runs: Mapping[str, Sequence[RunResult]], excused: Sequence[np.ndarray] | None = None,
                  done: bool = True, lost_epochs: Sequence[int] = (), conflicts: int = 0) -> dict:
-    """The completeness fields (DESIGN §9), over every algorithm and seed: an estimate is expected
+    """The completeness fields (report.json top level), over every algorithm and seed: an estimate is expected
     from every UAV at every epoch except where ``excused[seed index]`` (K x N, scheduled kill windows)
     is true; ``complete`` only if every expected estimate is there, the run reached its end
     (``done``), no epoch was lost and no estimate conflicted with another."""

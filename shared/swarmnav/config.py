@@ -1,6 +1,6 @@
 """Scenario configuration: pydantic models for everything a scenario holds, and the TOML loader.
 
-One place for every number of a scenario (DESIGN.md §3). Units are SI unless the field name says
+One place for every number of a scenario (the paper's §3.1 set-up: configs/paper.toml). Units are SI unless the field name says
 otherwise (``_deg``, ``_dph`` = deg/h, ``_ug`` = micro-g, ``_dpsh`` = deg/sqrt(h),
 ``_ugpshz`` = micro-g/sqrt(Hz), the PSINS ``imuerrset`` convention). Frames: ENU about the
 geodetic origin, body FLU.

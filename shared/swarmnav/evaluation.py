@@ -167,7 +167,7 @@ def link_labels(ds: Dataset) -> np.ndarray:
 
     ``err`` = |fault_err| (m) and ``thr`` = the scoring threshold (m) of the link-epoch: it is
     *faulty* when err > thr. thr = ``meta.fault_threshold_for(row σ)``: 3σ of that row's own noise
-    (DESIGN.md §4; the simulator's rows all carry uwb_sigma_m, so thr = fault_threshold_m exactly;
+    (README, "How to read the results"; the simulator's rows all carry uwb_sigma_m, so thr = fault_threshold_m exactly;
     MILUV: |bias| > 3·std, the issue's rule). Several range rows of one pair in one
     epoch (event-timestamped real data) are merged: the row with the largest err/thr counts, NaN
     (unknown) only if every row is unknown.

@@ -1,6 +1,6 @@
 """Initial knowledge of every estimator: truth at the start perturbed as a coarse alignment leaves it.
 
-DESIGN.md §3: position sigma = the node's own GNSS sigma (or 1 m per axis where it has none),
+Coarse alignment (a scenario's `[init]` table): position sigma = the node's own GNSS sigma (or 1 m per axis where it has none),
 velocity sigma ``init.vel_sigma_mps``, roll/pitch ``init.roll_pitch_sigma_deg``, yaw
 ``init.yaw_sigma_deg``, zero bias. Drawn from the run seed, so every algorithm and both transports
 start from the same numbers.

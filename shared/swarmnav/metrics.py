@@ -1,4 +1,4 @@
-"""Metrics of DESIGN.md §4 on plain arrays. Pure: numpy (and scipy.stats quantiles), no I/O.
+"""Metrics (paper eq. 28 RMSE, NEES, detection; README "How to read the results") on plain arrays. Pure: numpy (and scipy.stats quantiles), no I/O.
 
 Definitions (the report's keys keep exactly these meanings):
 

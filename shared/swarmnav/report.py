@@ -1,4 +1,4 @@
-"""report.json (DESIGN.md §5 contract, schema "swarmnav.report/1") and report.md. Pure: dicts and strings.
+"""report.json (the report contract: README "Quick start" file table, docs/results.md; schema "swarmnav.report/1") and report.md. Pure: dicts and strings.
 
 :func:`build_report` assembles the dict from per-algorithm metric blocks (see
 :func:`swarmnav.metrics.algorithm_metrics`) and what the caller measured (thresholds, detection,

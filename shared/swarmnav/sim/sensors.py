@@ -230,7 +230,7 @@ def simulate_uwb(sc: Scenario, t: np.ndarray, pos: np.ndarray, rng_bias, rng_noi
                  rng_intf, rng_fail, rng_tail=None, rng_nlos=None, t0: float = 0.0) -> UwbResult:
     """Two-way ranges at epoch times t (K,) from ENU positions pos (K,U,3).
 
-    Nominal: d + b_link + σ n, b_link ~ N(0, link_bias_sigma) per link. Faults (DESIGN.md §3),
+    Nominal: d + b_link + σ n, b_link ~ N(0, link_bias_sigma) per link. Faults (a scenario's [faults] table),
     applied in this order, each adding to ``err`` (the error beyond the nominal model):
       1 interference: per-link two-state Markov chain (stationary start, mean dwell in the
         interfered state ``mean_dwell_s``, fraction ``time_fraction``); per episode a bias
