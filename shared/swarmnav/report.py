@@ -79,7 +79,7 @@ def build_report(*, mode: str, scenario: str, seeds: list[int], n_uavs: int, dur
 
 
 def validate_report(rep: dict) -> list[str]:
-    """Problems with ``rep`` against the §5 contract (empty list = valid)."""
+    """Problems with ``rep`` against the report contract (empty list = valid)."""
     errs: list[str] = []
 
     def need(d, key, where):
