@@ -29,7 +29,7 @@ BROKEN_TOML = "[scenario\nname = 1\n"
     (["simulate", "--config", "{broken}", "--out", "{out}"], "not valid TOML"),
     (["simulate", "--config", "configs/smoke.toml", "--seed", "-3", "--out", "{out}"], "--seed must be >= 0"),
     (["evaluate", "--config", "configs/smoke.toml", "--algos", "foo", "--out", "{out}"], "unknown algorithm 'foo'"),
-    (["evaluate", "--config", "configs/smoke.toml", "--seeds", "3-1", "--out", "{out}"], "cannot parse '3-1'"),
+    (["evaluate", "--config", "configs/smoke.toml", "--seeds", "3-1", "--out", "{out}"], "cannot parse seeds '3-1'"),
     (["evaluate", "--config", "configs/smoke.toml", "--jobs", "0", "--out", "{out}"], "--jobs 0"),
     (["evaluate", "--dataset", "{tmp}", "--out", "{out}"], "not a dataset directory"),
     (["evaluate", "--dataset", "{tmp}", "--seeds", "tuning", "--out", "{out}"], "not a dataset directory"),

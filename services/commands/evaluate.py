@@ -51,29 +51,15 @@ log = logging.getLogger("swarmnav.evaluate")
 
 
 def parse_seeds(text: str) -> list[int]:
-    """'1-5' -> [1..5]; '1,3,7' -> [1,3,7]; mixes like '1-3,7' allowed; sorted, duplicates removed."""
+    """'1-5' -> [1..5]; '1,3,7' -> [1,3,7]; mixes like '1-3,7' allowed; sorted, duplicates removed
+    (``swarmnav.config.parse_seed_spec``; a bad spec is a ConfigError naming --seeds)."""
+    from swarmnav.config import parse_seed_spec
     from swarmnav.errors import ConfigError
 
-    out: set[int] = set()
-    for part in str(text).replace(" ", "").split(","):
-        if not part:
-            continue
-        try:
-            if "-" in part[1:]:
-                i = part.index("-", 1)
-                lo, hi = int(part[:i]), int(part[i + 1:])
-                if hi < lo:
-                    raise ValueError
-                out.update(range(lo, hi + 1))
-            else:
-                out.add(int(part))
-        except ValueError:
-            raise ConfigError(f"--seeds: cannot parse {part!r} (use e.g. 1-5, 1,3,7 or 1-3,7)") from None
-    if not out:
-        raise ConfigError("--seeds: no seed given")
-    if min(out) < 0:
-        raise ConfigError("--seeds: seeds must be >= 0")
-    return sorted(out)
+    try:
+        return parse_seed_spec(str(text))
+    except ValueError as e:
+        raise ConfigError(f"--seeds: {e}") from None
 
 
 def config_seeds(text: str, sc) -> list[int]:
