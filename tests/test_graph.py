@@ -636,31 +636,36 @@ def _round_links(rng, n=5, tdoa=True):
     return p0, L
 
 
-def _frozen_cost(p, p0, p_loc, info, L):
-    """The rounds' cost with every link's noise frozen at p0, written with the finite-difference
-    tested models of factors.py (range_h, azel_h, tdoa_h): ½Σ w·rᵀC⁻¹r + ½(p − p_loc)ᵀΛ(p − p_loc)."""
+def _whitened_residuals(p, p0, L):
+    """Every link's whitened residual at p with its noise frozen at p0, written with the finite-difference
+    tested models of factors.py (range_h, azel_h, tdoa_h): the rounds' cost is ½‖r‖² + the prior."""
     from swarmnav.estimators.factors import azel_h, range_h, tdoa_h, wrap_angle
 
-    f = 0.5 * (p - p_loc) @ info @ (p - p_loc)
+    out = []
     pj, Pj, w, lev, sig2, z = L["rng"]
     for n in range(len(z)):
-        r0, u0, _ = range_h(p0 + lev[n], pj[n])
-        var = sig2[n] + u0 @ Pj[n] @ u0
-        f += 0.5 * w[n] * (z[n] - range_h(p + lev[n], pj[n])[0]) ** 2 / var
+        _, u0, _ = range_h(p0 + lev[n], pj[n])
+        out.append(np.sqrt(w[n] / (sig2[n] + u0 @ Pj[n] @ u0)) * (z[n] - range_h(p + lev[n], pj[n])[0]))
     pt, Pt, wt, st2, za = L["azel"]
     for n in range(len(za)):
         _, _, Jt = azel_h(p0, pt[n])
         C = Jt @ Pt[n] @ Jt.T + st2[n] * np.eye(2)
-        h = azel_h(p, pt[n])[0]
-        res = np.array([wrap_angle(za[n, 0] - h[0]), za[n, 1] - h[1]])
-        f += 0.5 * wt[n] * res @ np.linalg.solve(C, res)
+        hh = azel_h(p, pt[n])[0]
+        res = np.array([wrap_angle(za[n, 0] - hh[0]), za[n, 1] - hh[1]])
+        out.extend(np.sqrt(wt[n]) * np.linalg.cholesky(np.linalg.inv(C)).T @ res)
     for ends, zt, s2, wt_ in L.get("tdoa", ()):
         def pts(q):
             return [q + x if kind == "self" else x for kind, x, _ in ends]
         _, *g0 = tdoa_h(*pts(p0))
         var = s2 + sum(gi @ Ce @ gi for (kind, _, Ce), gi in zip(ends, g0) if kind == "peer")
-        f += 0.5 * wt_ * (zt - tdoa_h(*pts(p))[0]) ** 2 / var
-    return f
+        out.append(np.sqrt(wt_ / var) * (zt - tdoa_h(*pts(p))[0]))
+    return np.array(out, float)
+
+
+def _frozen_cost(p, p0, p_loc, info, L):
+    """The rounds' cost ½Σ w·rᵀC⁻¹r + ½(p − p_loc)ᵀΛ(p − p_loc) with every link's noise frozen at p0."""
+    r = _whitened_residuals(p, p0, L)
+    return 0.5 * (p - p_loc) @ info @ (p - p_loc) + 0.5 * r @ r
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -671,7 +676,6 @@ def test_round_normal_equations_match_finite_differences(seed):
     H = Σ JᵀWJ + Λ from finite-difference Jacobians of each whitened residual."""
     from types import SimpleNamespace
 
-    from swarmnav.estimators.factors import azel_h, range_h, tdoa_h, wrap_angle
     from swarmnav.estimators.graph import GraphEstimator
 
     rng = np.random.default_rng(seed)
@@ -687,28 +691,8 @@ def test_round_normal_equations_match_finite_differences(seed):
     np.testing.assert_allclose(g, -num_g, rtol=1e-5, atol=1e-6 * max(1.0, np.abs(g).max()))
 
     # Gauss-Newton Hessian from finite-difference Jacobians of every whitened residual
-    def resid(p):
-        out = []
-        pj, Pj, w, lev, sig2, z = L["rng"]
-        for n in range(len(z)):
-            _, u0, _ = range_h(p0 + lev[n], pj[n])
-            out.append(np.sqrt(w[n] / (sig2[n] + u0 @ Pj[n] @ u0)) * (z[n] - range_h(p + lev[n], pj[n])[0]))
-        pt, Pt, wt, st2, za = L["azel"]
-        for n in range(len(za)):
-            _, _, Jt = azel_h(p0, pt[n])
-            C = Jt @ Pt[n] @ Jt.T + st2[n] * np.eye(2)
-            hh = azel_h(p, pt[n])[0]
-            res = np.array([wrap_angle(za[n, 0] - hh[0]), za[n, 1] - hh[1]])
-            out.extend(np.sqrt(wt[n]) * np.linalg.cholesky(np.linalg.inv(C)).T @ res)
-        for ends, zt, s2, wt_ in L["tdoa"]:
-            def pts(q):
-                return [q + x if kind == "self" else x for kind, x, _ in ends]
-            _, *g0 = tdoa_h(*pts(p0))
-            var = s2 + sum(gi @ Ce @ gi for (kind, _, Ce), gi in zip(ends, g0) if kind == "peer")
-            out.append(np.sqrt(wt_ / var) * (zt - tdoa_h(*pts(p))[0]))
-        return np.array(out, float)
-
-    J = np.column_stack([(resid(p0 + h * e) - resid(p0 - h * e)) / (2 * h) for e in np.eye(3)])
+    J = np.column_stack([(_whitened_residuals(p0 + h * e, p0, L) - _whitened_residuals(p0 - h * e, p0, L)) / (2 * h)
+                         for e in np.eye(3)])
     np.testing.assert_allclose(H, J.T @ J + info, rtol=1e-5, atol=1e-6 * np.abs(H).max())
     # coop_only: the same without the prior
     Hc, gc = GraphEstimator._normal_equations(node, p0, coop_only=True, L=L)
