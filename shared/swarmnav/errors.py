@@ -13,10 +13,6 @@ class DatasetError(SwarmnavError):
     """A dataset directory is missing, malformed or of an unknown schema version."""
 
 
-class EstimatorFailure(SwarmnavError):
-    """An estimator raised while running; the message names it, what failed and what to change."""
-
-
 # what a user can change when a solver fails this way (the exception text -> advice)
 _SOLVER_ADVICE = (
     ("Indeterminate linear system", "its factor graph became under-constrained or too ill-conditioned to solve; "

@@ -3,9 +3,9 @@
 One model, :class:`EstimatorTuning`, lists every tuning key the estimators read (graph.py: atvfg,
 atvfg_paper, fg, ins; central.py; fkf.py; imu.py's rest detector), with its default, unit and
 meaning. The config loader validates ``[estimation.graph]`` against it (``extra="forbid"``), so a
-typo fails naming the key instead of being silently ignored; :func:`tuning_defaults` is the one
-place the defaults live (``estimators.base.tuned_settings`` fills them in), and
-tests/test_settings.py holds the estimators' own reads to this list.
+typo fails naming the key instead of being silently ignored; tests/test_settings.py holds the
+estimators' own reads (and their defaults) to this list. (The estimators still read their settings
+dict with the same defaults; reading this model instead is the next step.)
 
 Units: metres (m), seconds (s), m/s, radians unless a name says otherwise; "factor" = multiple of
 the quantity named; "scale" = multiplies a σ.
@@ -101,11 +101,6 @@ class EstimatorTuning(BaseModel):
     fkf_neighbour_fusion: Literal["ci", "independent"] = Field("ci", description="neighbour fusion: covariance intersection or as independent")
     fkf_neighbour_corr: Literal["split", "none"] = Field("split", description="correlation model of neighbour estimates")
     fkf_anchor_max_reject: int = Field(3, ge=0, description="consecutive anchor rejections before reset")
-
-
-def tuning_defaults() -> dict:
-    """The defaults of every tuning key (those without a derived default, i.e. not None)."""
-    return {k: v for k, v in EstimatorTuning().model_dump().items() if v is not None}
 
 
 def validate_tuning(table: dict | None) -> dict:
