@@ -1,4 +1,5 @@
-"""Wire messages: float64-exact round trips, EpochInput split/join, and rejection of bad input."""
+"""Wire messages (JSON models and binary frames): float64-exact round trips and rejection of bad input
+with the reason the receivers count."""
 
 import json
 import logging
@@ -7,7 +8,7 @@ import numpy as np
 import pytest
 
 from swarmnav.dataset import EpochInput
-from swarmnav.estimators.base import LinkClass, LinkInfo, NodeEstimate, NodeState
+from swarmnav.estimators.base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeState
 from swarmnav.wire import messages as M
 
 
@@ -24,102 +25,89 @@ def _unit_quat(rng):
     return q / np.linalg.norm(q)
 
 
-def test_state_float64_exact():
-    rng = np.random.default_rng(0)
-    s = _state(rng)
-    s2 = M.msg_to_state(M.decode(M.StateMsg, M.state_to_msg(s).encode(), uav=3))
-    assert np.array_equal(s.pos, s2.pos) and np.array_equal(s.pos_cov, s2.pos_cov) and np.array_equal(s.vel, s2.vel)
-    assert s2.delta_m == float("inf") and s2.ranges == s.ranges and (s2.uav, s2.k, s2.r) == (3, 5, 2)
-    assert s2.bearings == s.bearings and np.array_equal(s2.quat, s.quat) and s2.n_links == 7
-    assert list(s2.traj) == sorted(s.traj) and all(np.array_equal(s2.traj[k], s.traj[k]) for k in s.traj)
-
-
-def test_state_json_traj_epochs_checked():
-    """The JSON state (queryable history replies) checks the relink window's epochs like the frame."""
-    good = M.state_to_msg(_state(np.random.default_rng(0))).model_dump(mode="json")
-    assert M.decode(M.StateMsg, json.dumps(good).encode(), uav=3).traj
-    for epoch in (6, -1):  # after the state's epoch k = 5, negative
-        bad = {**good, "traj": {str(epoch): [0.0, 0.0, 0.0]}}
-        with pytest.raises(M.WireError):
-            M.decode(M.StateMsg, json.dumps(bad).encode(), uav=3)
-
-
-def test_extreme_floats_exact():
-    rng = np.random.default_rng(1)
-    x = rng.normal(size=5000) * 10.0 ** rng.integers(-300, 300, 5000)
-    m = M.ImuMsg(uav=1, k=1, t=1.0, t_prev=0.0, imu_t=list(map(float, x)), gyro=[0.0] * 15000, accel=[0.0] * 15000)
-    back = M.decode(M.ImuMsg, m.encode())
-    assert np.array_equal(np.array(back.imu_t), x)
+def _estimate(rng, uav=2, k=9):
+    return NodeEstimate(uav, k, 9.0, rng.normal(size=3), rng.normal(size=3), np.eye(3) * 0.3, _unit_quat(rng),
+                        [LinkInfo(4, LinkClass.H1_INTERFERED, 2.5, 0.3)], 3, 1.5, 4.0, 0.4)
 
 
 def test_estimate_round_trip():
-    rng = np.random.default_rng(2)
-    e = NodeEstimate(2, 9, 9.0, rng.normal(size=3), rng.normal(size=3), np.eye(3) * 0.3, np.array([1.0, 0, 0, 0]),
-                     [LinkInfo(4, LinkClass.H1_INTERFERED, 2.5, 0.3)], 3, 1.5, 4.0, 0.4)
+    e = _estimate(np.random.default_rng(2))
     e2 = M.msg_to_estimate(M.decode(M.EstimateMsg, M.estimate_to_msg(e).encode(), uav=2))
-    assert np.array_equal(e.pos, e2.pos) and e2.links[0].cls == LinkClass.H1_INTERFERED and e2.delta_h_m == 4.0
+    assert np.array_equal(e.pos, e2.pos) and np.array_equal(e.vel, e2.vel) and np.array_equal(e.quat, e2.quat)
+    assert e2.links[0].cls == LinkClass.H1_INTERFERED and e2.delta_h_m == 4.0 and e2.rounds == 3
 
 
-def test_epoch_input_split_join_exact():
-    rng = np.random.default_rng(3)
-    inp = EpochInput(uav=2, k=4, t=4.0, t_prev=3.0, imu_t=np.arange(3.0, 4.0, 0.01), gyro=rng.normal(size=(100, 3)),
-                     accel=rng.normal(size=(100, 3)), gnss_pos=rng.normal(size=3), gnss_vel=rng.normal(size=3),
-                     gnss_pos_sigma=np.array([5.0, 5, 8]), gnss_vel_sigma=0.2, range_t=np.array([4.0, 4.0]),
-                     range_other=np.array([1, 3]), range_tag_self=np.array([0, 0]), range_tag_other=np.array([0, 0]),
-                     range_m=np.array([50.1, 80.2]), range_sigma=np.array([0.1, 0.1]), rel_target=np.array([1]),
-                     rel_az=np.array([0.3]), rel_el=np.array([-0.1]), rel_sigma=np.array([0.017]))
-    msgs = {t: M.decode(M.SENSOR_MSG[t], m.encode(), uav=2) for t, m in M.epoch_input_to_msgs(inp, [3, 1, 2]).items()}
-    assert msgs["epoch"].participants == [1, 2, 3] and set(msgs["epoch"].parts) == {"imu", "gnss", "uwb", "rel"}
-    out = M.msgs_to_epoch_input(msgs)
-    for f in inp.__dataclass_fields__:
-        a, b = getattr(inp, f), getattr(out, f)
-        if isinstance(a, np.ndarray):
-            assert a.dtype.kind == b.dtype.kind and np.array_equal(a, b), f
-        else:
-            assert a == b, f
-
-
-def _good_uwb():
-    return M.UwbMsg(uav=2, k=4, range_t=[4.0], other=[1], tag_self=[0], tag_other=[0], range_m=[50.0], sigma=[0.1])
+def test_json_floats_exact():
+    """JSON messages carry the shortest repr that round-trips: float64 values arrive bit-identical."""
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(2000, 3)) * 10.0 ** rng.integers(-300, 6, (2000, 3))  # inside the 1e6 m envelope
+    for row in x:
+        e = _estimate(rng)
+        e.pos = row
+        assert np.array_equal(M.msg_to_estimate(M.decode(M.EstimateMsg, M.estimate_to_msg(e).encode())).pos, row)
+    s = InitialState(t=1.0, pos=x[0], vel=x[1], quat=_unit_quat(rng), pos_sigma=np.array([1e-300, 2.5, 3.0]),
+                     vel_sigma=0.1, att_sigma=np.array([0.1, 0.2, 0.3]))
+    s2 = M.msg_to_init(M.decode(M.InitMsg, M.init_to_msg(4, s).encode(), uav=4))
+    assert all(np.array_equal(getattr(s, f), getattr(s2, f)) for f in ("pos", "vel", "quat", "pos_sigma", "att_sigma"))
 
 
 @pytest.mark.parametrize("mutate,reason", [
     (lambda d: d.update(v=M.SCHEMA_VERSION + 1), "version"),
     (lambda d: d.pop("v"), "version"),
-    (lambda d: d.update(range_m=[-1.0]), "invalid"),
-    (lambda d: d.update(range_m=[float("nan")]), "invalid"),
-    (lambda d: d.update(sigma=[0.0]), "invalid"),
-    (lambda d: d.update(other=[2]), "invalid"),
-    (lambda d: d.update(range_t=[4.0, 5.0]), "invalid"),
+    (lambda d: d.update(step_ms=-1.0), "invalid"),
+    (lambda d: d.update(t=float("nan")), "invalid"),
+    (lambda d: d.update(vel=[float("inf"), 0.0, 0.0]), "invalid"),
+    (lambda d: d.update(quat=[1.0, 0.0, 0.0]), "invalid"),
+    (lambda d: d.update(links=[{"other": 4, "cls": 3, "residual_m": 0.0, "weight": 1.0}]), "invalid"),
     (lambda d: d.update(extra=1), "invalid"),
     (lambda d: d.update(uav=3), "wrong_uav"),
     (lambda d: d.update(k=1), "stale"),
 ])
 def test_rejects(mutate, reason):
-    d = json.loads(_good_uwb().encode())
+    d = json.loads(M.estimate_to_msg(_estimate(np.random.default_rng(3), k=4)).encode())
     mutate(d)
     payload = json.dumps(d).encode()  # json writes NaN as NaN: must still be rejected
     with pytest.raises(M.WireError) as e:
-        M.decode(M.UwbMsg, payload, uav=2, min_k=3)
+        M.decode(M.EstimateMsg, payload, uav=2, min_k=3)
     assert e.value.reason == reason
 
 
 @pytest.mark.parametrize("payload", [b"", b"\xff\xfe", b"[1,2]", b"{", b"null", b"garbage"])
-def test_rejects_malformed(payload):
+@pytest.mark.parametrize("cls", [M.ClockMsg, M.HistoryMsg, M.EstimateMsg])
+def test_rejects_malformed(payload, cls):
     with pytest.raises(M.WireError) as e:
-        M.decode(M.StateMsg, payload)
+        M.decode(cls, payload)
     assert e.value.reason in ("malformed", "version")
 
 
-def test_state_nan_rejected_inf_only_in_delta():
-    d = json.loads(M.state_to_msg(_state(np.random.default_rng(4))).encode())
-    d["delta_m"] = float("nan")
-    with pytest.raises(M.WireError):
-        M.decode(M.StateMsg, json.dumps(d))
-    d["delta_m"] = 1.0
-    d["pos"] = [float("inf"), 0, 0]
-    with pytest.raises(M.WireError):
-        M.decode(M.StateMsg, json.dumps(d))
+def test_history_carries_the_state_frames():
+    """The state queryable's reply carries the very frames published on ``state`` (one encoding)."""
+    rng = np.random.default_rng(0)
+    frames = [M.encode_state(_state(rng)) for _ in range(3)]
+    ests = [M.estimate_to_msg(_estimate(rng, uav=3))]
+    h = M.decode(M.HistoryMsg, M.HistoryMsg.of(3, frames, ests).encode(), uav=3)
+    got = h.node_states()
+    assert [M.encode_state(s) for s in got] == frames and h.estimates == ests
+    assert M.decode(M.HistoryMsg, M.HistoryMsg.of(3, [], []).encode(), uav=3).node_states() == []
+
+
+def test_history_states_checked_like_frames():
+    rng = np.random.default_rng(1)
+    good = M.encode_state(_state(rng))
+    far = _state(rng)
+    far.pos, far.traj = np.array([5e4, 0.0, 0.0]), {}
+    for states, reason, kw in (([good[:-1]], "malformed", {}), ([M.encode_state(_state(rng))[:3] + b"\x00" + good[4:]], "version", {}),
+                               ([good], "wrong_uav", {"uav": 4}), ([M.encode_state(far)], "envelope", {"envelope_m": 1e4})):
+        h = M.HistoryMsg.of(3, states, [])
+        if "uav" in kw:
+            h = h.model_copy(update={"uav": kw.pop("uav")})
+        with pytest.raises(M.WireError) as e:
+            M.decode(M.HistoryMsg, h.encode()).node_states(**kw)
+        assert e.value.reason == reason
+    bad = {**json.loads(M.HistoryMsg.of(3, [good], []).encode()), "states": ["not base64!"]}
+    with pytest.raises(M.WireError) as e:
+        M.decode(M.HistoryMsg, json.dumps(bad), uav=3).node_states()
+    assert e.value.reason == "malformed"
 
 
 def test_rejects_counter(caplog):
@@ -175,21 +163,9 @@ def _with_tdoa(inp):
     return inp
 
 
-def test_tdoa_input_round_trips_both_encodings():
+def test_tdoa_input_round_trips():
     inp = _with_tdoa(_input(np.random.default_rng(11)))
     _same_input(inp, M.decode_input(M.encode_input(inp, [1, 2, 3]), uav=2)[0])
-    msgs = {t: M.decode(M.SENSOR_MSG[t], m.encode(), uav=2) for t, m in M.epoch_input_to_msgs(inp, [1, 2, 3]).items()}
-    assert "tdoa" in msgs["epoch"].parts
-    _same_input(inp, M.msgs_to_epoch_input(msgs))
-
-
-def test_tdoa_json_part_rejects():
-    good = M.epoch_input_to_msgs(_with_tdoa(_input(np.random.default_rng(13))), [1, 2, 3])["tdoa"].model_dump()
-    for field, value in (("rdiff", [1e6, 0.0]), ("listener", [0, 2]), ("sigma", [0.2, -1.0]), ("tag", [21])):
-        bad = dict(good, **{field: value})
-        with pytest.raises(M.WireError) as e:
-            M.decode(M.TdoaMsg, json.dumps(bad), uav=2)
-        assert e.value.reason == "invalid", field
 
 
 @pytest.mark.parametrize("field, value", [("tdoa_sigma", np.array([0.19, 0.0])), ("tdoa_init", np.array([-1, 3])),

@@ -227,11 +227,11 @@ class Node:
         states; always the recent estimates (a peer learns that we finished an epoch)."""
         try:
             params = {p.split("=")[0]: p.split("=")[1] for p in str(q.parameters).split(";") if "=" in p}
-            hist = [M.decode_state(b) for b in list(self.history)]
+            hist = list(self.history)
             if "k" in params and "r" in params:
                 k, r = int(params["k"]), int(params["r"])
-                hist = [s for s in hist if s.k == k and s.r == r]
-            msg = M.HistoryMsg(uav=self.uav, states=[M.state_to_msg(s) for s in hist], estimates=list(self.est_history))
+                hist = [b for b in hist if (s := M.decode_state(b)).k == k and s.r == r]
+            msg = M.HistoryMsg.of(self.uav, hist, list(self.est_history))
             q.reply(keys.uav(self.run, self.uav, "state"), msg.encode())
         except Exception as e:  # a bad query must not kill the node
             self.rejects.add("query", M.WireError("bad_query", str(e)))
@@ -271,9 +271,9 @@ class Node:
                     if rep.ok is None:
                         continue
                     h = M.decode(M.HistoryMsg, rep.ok.payload.to_bytes(), uav=u)
-                    for s in h.states:
+                    for s in h.node_states(envelope_m=self.a.envelope_m):
                         if s.k == k and s.r == r:
-                            self.states.setdefault((k, r), {})[u] = M.msg_to_state(s)
+                            self.states.setdefault((k, r), {})[u] = s
                     if any(e.k >= k for e in h.estimates):
                         self.peer_done_k[u] = max(self.peer_done_k.get(u, 0), max(e.k for e in h.estimates))
             except M.WireError as e:
@@ -461,11 +461,12 @@ class Node:
             try:
                 kk = keys.parse(str(rep.ok.key_expr))
                 h = M.decode(M.HistoryMsg, rep.ok.payload.to_bytes(), uav=kk.uav)
+                states = h.node_states(envelope_m=self.a.envelope_m)
             except (ValueError, M.WireError) as e:
                 self.rejects.add("bootstrap", e if isinstance(e, M.WireError) else M.WireError("bad_key", str(e)))
                 continue
-            if h.uav != self.uav and h.states:
-                peers[h.uav] = M.msg_to_state(h.states[-1])
+            if h.uav != self.uav and states:
+                peers[h.uav] = states[-1]
         return dict(sorted(peers.items()))
 
     def loop(self) -> int:
