@@ -32,7 +32,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from . import metrics
-from .config import evaluation_block
+from .scenario import evaluation_block
 from .evaluation import FAULT_RULE, RunResult, Truth
 from .report import build_report
 

@@ -126,7 +126,7 @@ def estimator_settings(estimation, base_dirs: tuple[Path, ...] = ()) -> dict:
     """Settings dict for every estimator: ``estimation.model_dump()`` + ``delta_l_m`` (or None) and
     ``delta_l_uwb_sigma_m`` (the ranging σ of Δl's training data, or None).
 
-    ``estimation`` is a :class:`swarmnav.config.Estimation` (or a plain dict of its fields).
+    ``estimation`` is a :class:`swarmnav.scenario.Estimation` (or a plain dict of its fields).
     """
     s = dict(estimation.model_dump() if hasattr(estimation, "model_dump") else estimation)
     f = s.get("delta_l_file")
@@ -138,7 +138,7 @@ def estimator_settings(estimation, base_dirs: tuple[Path, ...] = ()) -> dict:
 def settings_for_dataset(meta, base_dirs: tuple[Path, ...] = ()) -> dict:
     """Settings for a dataset run as-is: the ``estimation`` table of its resolved scenario config
     (simulated datasets carry it in ``meta.config``), else the defaults of ``Estimation``."""
-    from ..config import Estimation
+    from ..scenario import Estimation
 
     cfg = (meta.config or {}).get("estimation") if meta.config else None
     return estimator_settings(Estimation.model_validate(cfg) if cfg else Estimation(), base_dirs)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config import Scenario
+from ..scenario import Scenario
 from ..dataset import Dataset, DatasetMeta, Earth, EventSpec, GeoOrigin, Node, Window
 from ..errors import ConfigError
 from .sensors import (corrupt_imu, gnss_errors, gnss_sigma_total, imu_noise_si, in_window,

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config import Scenario
+from ..scenario import Scenario
 from ..errors import ConfigError
 from .earth import earth_rate_enu, normal_gravity
 from ..geometry import quat_conj as qconj, quat_mul as qmul, quat_rotate as qrot, quat_to_rotvec as qlog
