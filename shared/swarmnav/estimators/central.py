@@ -34,6 +34,7 @@ import gtsam
 import numpy as np
 
 from ..dataset import DatasetMeta, EpochInput, FaultKind
+from ..geometry import skew
 from .base import InitialState, NodeEstimate, SwarmEstimator, tuned_settings
 from .factors import (DRAG_SIGMA_SCALE, range_to_point_factor, rotor_drag_factor, rotor_drag_prior, rotor_drag_sigma,
                       tdoa_factor, tdoa_row)
@@ -68,9 +69,6 @@ def _pair_range_factor(ka: int, kb: int, la: np.ndarray, lb: np.ndarray, z: floa
     """Range between tag la on pose ka and tag lb on pose kb."""
     if not np.any(la) and not np.any(lb):
         return gtsam.RangeFactorPose3(ka, kb, float(z), noise)
-
-    def skew(t):
-        return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
 
     def err(this, v, H):
         Pa, Pb = v.atPose3(this.keys()[0]), v.atPose3(this.keys()[1])

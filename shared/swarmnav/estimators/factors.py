@@ -1,28 +1,23 @@
-"""Custom measurement models and gtsam factors for cooperative navigation (numpy + gtsam only).
+"""gtsam factors of the measurement models (``swarmnav.models``: h, Jacobians, noise).
 
-Two layers, same maths:
+The maths lives in ``models/`` (one module per sensor, finite-difference tested once,
+generically: tests/test_models.py); here it is wrapped as ``gtsam.CustomFactor``s on ``Point3``
+keys or on ``Pose3`` keys (then the position is ``pose.translation()`` and the Jacobian is
+``[0 | R]`` in gtsam's Pose3 tangent ordering (rotation, translation)):
 
-* **numpy models** ``range_h``, ``azel_h`` (value + Jacobians w.r.t. both ENU positions). The
-  distributed estimators' per-round cooperative solve uses these directly (a 3-D Gauss-Newton on the
-  node's own position is ~50 µs in numpy, where ~34 Python ``CustomFactor`` linearisations would
-  cost ~1 ms per round).
-* **gtsam factors** built on them (``CustomFactor``), on ``Point3`` keys or on ``Pose3`` keys (then
-  the position is ``pose.translation()`` and the Jacobian is ``[0 | R]`` in gtsam's Pose3 tangent
-  ordering (rotation, translation)):
+- :func:`azel_factor` — relative azimuth/elevation of the paper's eq. 27 **in ENU**
+  (``BearingRangeFactorPose3`` measures a body-frame bearing, so it is not eq. 27);
+- :func:`range_factor` — range between two unknown positions (central oracle);
+- :func:`range_to_point_factor` — range from a pose (with a body lever arm) to a point given
+  with an uncertainty (a fixed anchor: covariance 0; a neighbour's broadcast: its covariance is
+  folded into the noise along the line of sight, see :func:`effective_range_sigma`);
+- :func:`stacked_range_factor` — many ranges to known/uncertain points in one Python callback;
+- :func:`tdoa_factor` — a passive-listening range difference (``tdoa_h``) between up to three
+  tags on poses or fixed points;
+- :func:`altitude_factor`, :func:`rotor_drag_factor` / :func:`rotor_drag_prior`.
 
-  - :func:`azel_factor` — relative azimuth/elevation of the paper's eq. 27 **in ENU**
-    (``BearingRangeFactorPose3`` measures a body-frame bearing, so it is not eq. 27);
-  - :func:`range_factor` — range between two unknown positions (central oracle);
-  - :func:`range_to_point_factor` — range from a pose (with a body lever arm) to a point given
-    with an uncertainty (a fixed anchor: covariance 0; a neighbour's broadcast: its covariance is
-    folded into the noise along the line of sight, see :func:`effective_range_sigma`);
-  - :func:`stacked_range_factor` — many ranges to known/uncertain points in one Python callback;
-  - :func:`tdoa_factor` — a passive-listening range difference (``tdoa_h``) between up to three
-    tags on poses or fixed points.
-
-Conventions (dataset.py): azimuth = atan2(N_t - N_o, E_t - E_o) from East, counter-clockwise;
-elevation = atan2(U_t - U_o, horizontal distance). Residuals are ``h(x) - z`` with the azimuth
-residual wrapped to (-pi, pi].
+The numpy models are re-exported here (``range_h``, ``azel_h``, ``tdoa_h``, ...) for callers
+that import them from this module. Residuals are ``h(x) - z`` with the azimuth wrapped.
 """
 
 from __future__ import annotations
@@ -32,70 +27,35 @@ from collections.abc import Sequence
 import gtsam
 import numpy as np
 
+from ..models.altimeter import height_jacobian
+from ..models.anchor_range import pose_ranges
+from ..models.base import skew, wrap_angle
+from ..models.bearing import azel_h, effective_azel_cov
+from ..models.rotor_drag import DRAG_SIGMA_SCALE, drag_residual, rotor_drag_sigma
+from ..models.tdoa import tdoa_h, tdoa_row
+from ..models.uwb_range import effective_range_sigma, range_h
+
 __all__ = [
     "DRAG_SIGMA_SCALE",
     "rotor_drag_sigma",
     "rotor_drag_prior",
+    "rotor_drag_factor",
     "wrap_angle",
     "range_h",
     "azel_h",
     "effective_range_sigma",
     "effective_azel_cov",
+    "altitude_factor",
     "azel_factor",
     "range_factor",
     "range_to_point_factor",
     "stacked_range_factor",
     "tdoa_h",
+    "tdoa_row",
     "tdoa_factor",
 ]
 
 _EPS = 1e-9
-
-
-def wrap_angle(a):
-    """Wrap to (-pi, pi]."""
-    return np.pi - np.mod(np.pi - np.asarray(a, float), 2 * np.pi)
-
-
-# -- numpy models ---------------------------------------------------------------------------
-
-
-def range_h(p_i: np.ndarray, p_j: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Range ‖p_i − p_j‖ and its Jacobians (1×3 as (3,)) w.r.t. p_i and p_j."""
-    d = np.asarray(p_i, float) - np.asarray(p_j, float)
-    r = float(np.sqrt(d @ d))
-    u = d / max(r, _EPS)
-    return r, u, -u
-
-
-def azel_h(p_obs: np.ndarray, p_tgt: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Eq. 27 azimuth/elevation of ``p_tgt`` seen from ``p_obs`` (ENU) and 2×3 Jacobians (obs, tgt)."""
-    d = np.asarray(p_tgt, float) - np.asarray(p_obs, float)
-    e, n, u = d
-    h2 = e * e + n * n
-    h = np.sqrt(max(h2, _EPS * _EPS))
-    r2 = max(h2 + u * u, _EPS * _EPS)
-    az = np.arctan2(n, e)
-    el = np.arctan2(u, h)
-    # d az / d d = [-n, e, 0] / h^2 ; d el / d d = [-e u, -n u, h^2] / (h r^2)
-    Jd = np.array([[-n / (h * h), e / (h * h), 0.0],
-                   [-e * u / (h * r2), -n * u / (h * r2), h / r2]])
-    return np.array([az, el]), -Jd, Jd
-
-
-def effective_range_sigma(sigma: float, u: np.ndarray, cov_other: np.ndarray | None) -> float:
-    """Range sigma with the other end's position uncertainty marginalised along the line of sight."""
-    if cov_other is None:
-        return float(sigma)
-    return float(np.sqrt(sigma * sigma + u @ cov_other @ u))
-
-
-def effective_azel_cov(sigma: float, J_tgt: np.ndarray, cov_tgt: np.ndarray | None) -> np.ndarray:
-    """2×2 az/el covariance with the target position uncertainty marginalised."""
-    c = np.eye(2) * sigma * sigma
-    if cov_tgt is not None:
-        c = c + J_tgt @ cov_tgt @ J_tgt.T
-    return c
 
 
 # -- gtsam glue -----------------------------------------------------------------------------
@@ -153,27 +113,7 @@ def range_factor(key_i: int, key_j: int, measured: float, noise: gtsam.noiseMode
 
 def _lever_jac(R: np.ndarray, lever: np.ndarray) -> np.ndarray:
     """d(p + R t)/d(Pose3 tangent) = [ -R [t]x | R ]."""
-    t = lever
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    return np.hstack([-R @ tx, R])
-
-
-def tdoa_row(rdiff: float, sigma: float, fallback_sigma: float, sigma_scale: float = 1.0,
-             offset_m: float = 0.0) -> tuple[float, float]:
-    """(value, σ) in m of one passive-listening row as the estimators fuse it: the measured rdiff
-    less the passive path's offset (``tdoa_offset_m``), and the row's σ (else ``fallback_sigma``,
-    the ranging σ) × ``tdoa_sigma_scale``. One place for graph.py and central.py."""
-    return float(rdiff) - offset_m, sigma_scale * (float(sigma) if sigma > 0 else float(fallback_sigma))
-
-
-def tdoa_h(p_listener: np.ndarray, p_init: np.ndarray, p_resp: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """Passive-listening range difference ‖p_resp − p_l‖ − ‖p_init − p_l‖ (m) and its Jacobians
-    (each (3,)) w.r.t. the listener, initiator and responder ENU positions."""
-    dr = np.asarray(p_resp, float) - np.asarray(p_listener, float)
-    di = np.asarray(p_init, float) - np.asarray(p_listener, float)
-    rr, ri = float(np.sqrt(dr @ dr)), float(np.sqrt(di @ di))
-    ur, ui = dr / max(rr, _EPS), di / max(ri, _EPS)
-    return rr - ri, ui - ur, -ui, ur
+    return np.hstack([-R @ skew(lever), R])
 
 
 def tdoa_factor(ends: Sequence[tuple[int | None, np.ndarray]], measured: float,
@@ -260,33 +200,12 @@ def stacked_range_factor(key: int, points: np.ndarray, measured: np.ndarray, sig
 
     def err(this: gtsam.CustomFactor, v: gtsam.Values, H: list[np.ndarray] | None):
         P = v.atPose3(this.keys()[0])
-        R = P.rotation().matrix()
-        tags = P.translation() + T @ R.T  # (n,3)
-        d = tags - A
-        r = np.sqrt(np.einsum("ij,ij->i", d, d))
-        u = d / np.maximum(r, _EPS)[:, None]
+        r, J = pose_ranges(P.translation(), P.rotation().matrix(), T, A, jacobian=H is not None)
         if H is not None:
-            # d r / d rot = -u^T R [t]x = (R^T u) x t ... computed as u^T (-R [t]x) per row
-            ub = u @ R  # rows: R^T u
-            Jrot = np.cross(T, ub)  # u^T(-R[t]x) = -(R^T u)^T [t]x = (t x R^T u)^T
-            H[0] = (np.hstack([Jrot, ub]) * scale[:, None])
+            H[0] = J * scale[:, None]
         return (r - z) * scale
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(n), [key], err)
-
-
-# σ of the rotor-drag factor = this × the epoch mean of the accelerometer's white noise
-# (accel_noise_density/√Δt): the drag model has its own error (unmodelled aerodynamics, IMU lever
-# arm, time correlation). 1.5 = the lowest held-out anchor-range error of a truth-free 4-fold
-# cross-validation over {1, 1.5, 2, 3} on MILUV (`swarmnav calibrate --dataset DS --grid
-# drag_sigma_scale=1,1.5,2,3`, docs/miluv.md "Fifth pass")
-DRAG_SIGMA_SCALE = 1.5
-
-
-def rotor_drag_sigma(params, epoch_s: float, scale: float = DRAG_SIGMA_SCALE) -> float:
-    """σ (m/s²) of the rotor-drag factor over an epoch of ``epoch_s`` s: ``scale`` × the epoch mean
-    of the accelerometer white noise of the preintegration ``params``."""
-    return float(scale) * float(np.sqrt(params.getAccelerometerCovariance()[0, 0] / epoch_s))
 
 
 def rotor_drag_prior(key_m: int, mu0: float, mu_sigma: float, f_xy0: np.ndarray, at_rest: bool):
@@ -300,7 +219,7 @@ def rotor_drag_prior(key_m: int, mu0: float, mu_sigma: float, f_xy0: np.ndarray,
 
 def rotor_drag_factor(key_x: int, key_v: int, key_b: int, key_m: int, f_xy: np.ndarray,
                       sigma: float) -> gtsam.CustomFactor:
-    """Multirotor rotor-drag factor (graph.py ``_drag_factor``, central.py).
+    """Multirotor rotor-drag factor (models/rotor_drag.py; graph.py, central.py).
 
     Residual μ(Rᵀv)_xy + (f_xy − b_a,xy) − c on Pose3 ``key_x`` (R), velocity ``key_v`` (ENU),
     ConstantBias ``key_b`` and the drag state ``key_m`` = [μ, c_x, c_y]; ``f_xy`` = the epoch's mean
@@ -310,21 +229,24 @@ def rotor_drag_factor(key_x: int, key_v: int, key_b: int, key_m: int, f_xy: np.n
     fxy = np.asarray(f_xy, float)[:2].copy()
 
     def err(this, vals, H):
-        P = vals.atPose3(this.keys()[0])
-        vel = vals.atVector(this.keys()[1])
-        ba = vals.atConstantBias(this.keys()[2]).accelerometer()
-        m = vals.atVector(this.keys()[3])
-        Rm = P.rotation().matrix()
-        vb = Rm.T @ vel
+        k = this.keys()
+        e, J = drag_residual(vals.atPose3(k[0]).rotation().matrix(), vals.atVector(k[1]),
+                             vals.atConstantBias(k[2]).accelerometer(), vals.atVector(k[3]), fxy, H is not None)
         if H is not None:
-            sk = np.array([[0.0, -vb[2], vb[1]], [vb[2], 0.0, -vb[0]], [-vb[1], vb[0], 0.0]])
-            H[0] = np.hstack([m[0] * sk[:2], np.zeros((2, 3))])
-            H[1] = m[0] * Rm.T[:2]
-            Hb = np.zeros((2, 6))
-            Hb[0, 0] = Hb[1, 1] = -1.0
-            H[2] = Hb
-            H[3] = np.array([[vb[0], -1.0, 0.0], [vb[1], 0.0, -1.0]])
-        return m[0] * vb[:2] + (fxy - ba[:2]) - m[1:3]
+            H[0], H[1], H[2], H[3] = J
+        return e
 
     return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(2, float(sigma)), [key_x, key_v, key_b, key_m], err)
 
+
+
+def altitude_factor(key: int, height: float, sigma: float) -> gtsam.CustomFactor:
+    """Altimeter (models/altimeter.py): height of the body origin of Pose3 ``key``, σ (m)."""
+
+    def err(this, v, H):
+        P = v.atPose3(this.keys()[0])
+        if H is not None:
+            H[0] = height_jacobian(P.rotation().matrix())
+        return np.array([P.translation()[2] - height])
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, float(sigma)), [key], err)

@@ -65,14 +65,11 @@ import numpy as np
 from scipy.stats import chi2
 
 from ..dataset import DatasetMeta, EpochInput
+from ..geometry import skew
 from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState
 from .imu import preintegrate, preintegration_params
 
 ATT, VEL, POS, BA, BG = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
-
-
-def _skew(a: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
 
 
 def error_state_map(R: np.ndarray) -> np.ndarray:
@@ -264,7 +261,7 @@ class FkfEstimator(NodeEstimator):
             u = d / rng
             h = np.zeros(15)
             h[POS] = u
-            h[ATT] = -u @ R @ _skew(lever)
+            h[ATT] = -u @ R @ skew(lever)
             sig = float(inp.range_sigma[j]) if np.isfinite(inp.range_sigma[j]) and inp.range_sigma[j] > 0 else self.meta.uwb_sigma_m
             rv = sig**2 + float(u @ Pb @ u)
             wrows.append(float(u @ Pb @ u))

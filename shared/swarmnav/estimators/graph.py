@@ -90,7 +90,9 @@ from .detection import fallback_delta_l
 from ..dataset import DatasetMeta, EpochInput
 from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState, tuned_settings
 from . import detection as det
-from .factors import (DRAG_SIGMA_SCALE, rotor_drag_factor, rotor_drag_prior, rotor_drag_sigma, stacked_range_factor,
+from ..models.altimeter import DEFAULT_SIGMA_M as DEFAULT_ALT_SIGMA
+from ..models.gnss import position_sigma
+from .factors import (DRAG_SIGMA_SCALE, altitude_factor, rotor_drag_factor, rotor_drag_prior, rotor_drag_sigma, stacked_range_factor,
                       tdoa_factor, tdoa_h, tdoa_row, wrap_angle)
 from .imu import InitialRest, mean_specific_force, preintegrate, preintegration_params
 
@@ -298,13 +300,13 @@ class GraphEstimator(NodeEstimator):
         g = gtsam.NonlinearFactorGraph()
         g.add(gtsam.CombinedImuFactor(X(n - 1), V(n - 1), X(n), V(n), B(n - 1), B(n), self.pim))
         if inp.gnss_pos is not None:
-            sig = self.gnss_scale * np.sqrt(np.asarray(inp.gnss_pos_sigma, float) ** 2 + self.gnss_extra_var)
+            sig = position_sigma(inp.gnss_pos_sigma, self.gnss_extra_var, self.gnss_scale)
             g.add(gtsam.GPSFactor(X(n), np.asarray(inp.gnss_pos, float), gtsam.noiseModel.Diagonal.Sigmas(sig)))
         if inp.gnss_vel is not None and inp.gnss_vel_sigma:
             g.add(gtsam.PriorFactorVector(V(n), np.asarray(inp.gnss_vel, float),
                                           gtsam.noiseModel.Isotropic.Sigma(3, float(inp.gnss_vel_sigma))))
         if inp.altitude is not None:
-            g.add(self._altitude_factor(X(n), inp.altitude, inp.altitude_sigma or 0.1))
+            g.add(altitude_factor(X(n), inp.altitude, inp.altitude_sigma or DEFAULT_ALT_SIGMA))
         if self._rest.update(inp):  # until the first motion, for good
             g.add(self._rest.prior(V(n)))
         self._v_pred = np.asarray(pred.velocity(), float)
@@ -411,15 +413,6 @@ class GraphEstimator(NodeEstimator):
 
     def _broadcast_cov(self) -> np.ndarray:
         return self.P_loc.copy()
-
-    def _altitude_factor(self, key, height, sigma):
-        def err(this, v, H):
-            P = v.atPose3(this.keys()[0])
-            if H is not None:
-                H[0] = np.hstack([np.zeros(3), P.rotation().matrix()[2]]).reshape(1, 6)
-            return np.array([P.translation()[2] - height])
-
-        return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, float(sigma)), [key], err)
 
     def _add_anchor_ranges(self, g, key, inp: EpochInput):
         if not self.anchors or len(inp.range_other) == 0:
