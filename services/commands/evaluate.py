@@ -193,61 +193,55 @@ def _load_inputs(args):
     return ds.meta.name, seeds, settings, dataset_sha256(ds.meta), ds, None
 
 
-def run(args) -> int:
-    global _SETTINGS, _QUEUE
-    import multiprocessing as mp
-
+def _check_run_args(args) -> tuple[int, list[str]]:
+    """(jobs, algorithms), every one checked before anything is written; ConfigError otherwise."""
     from swarmnav.errors import ConfigError
-
-    t_wall = time.perf_counter()
-    # every input checked before anything is written
-    if args.jobs < 1:
-        raise ConfigError(f"--jobs {args.jobs}: the number of worker processes must be >= 1 (default 2)")
-    jobs = int(args.jobs)
-    algos = parse_algos(args.algos)
     from swarmnav.estimators import registry
 
+    if args.jobs < 1:
+        raise ConfigError(f"--jobs {args.jobs}: the number of worker processes must be >= 1 (default 2)")
+    algos = parse_algos(args.algos)
     for a in algos:  # fail fast (and import once here, so forked workers inherit the modules)
         registry.estimator_class(a)
-    name, seeds, settings, cfg_sha, ds_given, cfg_path = _load_inputs(args)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    handler = _setup_log(out)
-    _SETTINGS = settings
-    log.info("evaluate %s: algos=%s seeds=%s settings=%s", name, algos, seeds, settings)
-    quiet = bool(args.quiet)
-    ctx = mp.get_context("fork")
+    return int(args.jobs), algos
 
-    # 1. datasets
+
+def _make_datasets(seeds, ds_given, cfg_path, overrides, jobs: int, ctx, quiet: bool) -> None:
+    """Fill _DATASETS: the given dataset for every seed, or each seed simulated (in parallel)."""
     _DATASETS.clear()
     if ds_given is not None:
         for s in seeds:
             _DATASETS[s] = ds_given
-    else:
-        t0 = time.perf_counter()
-        todo = [(str(cfg_path), s, list(args.set)) for s in seeds]
-        if len(todo) > 1 and jobs > 1:
-            with ctx.Pool(min(jobs, len(todo)), initializer=_limit_threads) as pool:
-                for s, ds in pool.imap_unordered(_simulate, todo):
-                    _DATASETS[s] = ds
-        else:
-            for item in todo:
-                s, ds = _simulate(item)
+        return
+    t0 = time.perf_counter()
+    todo = [(str(cfg_path), s, list(overrides)) for s in seeds]
+    if len(todo) > 1 and jobs > 1:
+        with ctx.Pool(min(jobs, len(todo)), initializer=_limit_threads) as pool:
+            for s, ds in pool.imap_unordered(_simulate, todo):
                 _DATASETS[s] = ds
-        log.info("simulated %d seed(s) in %.1f s", len(seeds), time.perf_counter() - t0)
-        if not quiet:
-            print(f"simulated {len(seeds)} seed(s) in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
-    meta = _DATASETS[seeds[0]].meta
+    else:
+        for item in todo:
+            s, ds = _simulate(item)
+            _DATASETS[s] = ds
+    log.info("simulated %d seed(s) in %.1f s", len(seeds), time.perf_counter() - t0)
+    if not quiet:
+        print(f"simulated {len(seeds)} seed(s) in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
 
-    # 2. runs: longest first so the two workers finish together
+
+def _tasks(algos: list[str], seeds: list[int]) -> list[tuple[int, str, int]]:
+    """(task id, algorithm, seed), longest runs first so that the workers finish together."""
     cost = {"central": 0, "atvfg": 1, "fg": 2, "fkf": 3, "ins": 4}
-    tasks = [(i, a, s) for i, (a, s) in enumerate(sorted(((a, s) for a in algos for s in seeds),
-                                                          key=lambda x: (cost.get(x[0], 5), x[1])))]
-    K = meta.n_epochs()
+    runs = sorted(((a, s) for a in algos for s in seeds), key=lambda x: (cost.get(x[0], 5), x[1]))
+    return [(i, a, s) for i, (a, s) in enumerate(runs)]
+
+
+def _run_tasks(tasks, settings: dict, jobs: int, ctx, n_epochs: int, quiet: bool) -> tuple[dict, dict]:
+    """Run every (algorithm, seed) task, in this process or over a worker pool, with progress bars.
+    -> (results by (algorithm, seed), failures 'algo/seedN' -> first line of the error)."""
+    from tqdm import tqdm
+
     results: dict[tuple[str, int], object] = {}
     failures: dict[str, str] = {}
-    bars = {}
-    from tqdm import tqdm
 
     def handle(tid, res, err):
         _, a, s = tasks[tid]
@@ -260,72 +254,91 @@ def run(args) -> int:
             log.info("%s seed %d: %.1f s wall", a, s, res.wall_s)
 
     if jobs == 1 or len(tasks) == 1:
-        _QUEUE = None
-        for tid, a, s in tasks:
-            bar = tqdm(total=K, desc=f"{a:>7} seed {s}", disable=quiet, leave=True)
-            from swarmnav.evaluation import run_algorithm
-
-            try:
-                res = run_algorithm(_DATASETS[s], a, s, settings, lambda k, KK: bar.update(1))
-                handle(tid, res, None)
-            except Exception as e:  # noqa: BLE001
-                from swarmnav.errors import describe_estimator_failure
-
-                handle(tid, None, describe_estimator_failure(a, s, e) + "\n" + traceback.format_exc())
-            bar.close()
+        _run_serial(tasks, settings, n_epochs, quiet, handle)
     else:
-        _QUEUE = ctx.Queue()
-        with ctx.Pool(min(jobs, len(tasks)), initializer=_limit_threads) as pool:
-            pending = [pool.apply_async(_run_task, (t,)) for t in tasks]
-            for pos, (tid, a, s) in enumerate(tasks):
-                bars[tid] = tqdm(total=K, desc=f"{a:>7} seed {s}", position=pos, disable=quiet, leave=True)
-            import queue as _q
+        _run_pool(tasks, jobs, ctx, n_epochs, quiet, handle)
+    return results, failures
 
-            while pending:
-                try:
-                    while True:
-                        tid, n = _QUEUE.get(timeout=0.2)
-                        bars[tid].update(n)
-                except _q.Empty:
-                    pass
-                for p in [p for p in pending if p.ready()]:
-                    pending.remove(p)
-                    handle(*p.get())
-            for b in bars.values():
-                b.close()
-        _QUEUE = None
 
-    # 3. metrics, report, files
+def _run_serial(tasks, settings: dict, n_epochs: int, quiet: bool, handle) -> None:
+    from swarmnav.errors import describe_estimator_failure
+    from swarmnav.evaluation import run_algorithm
+    from tqdm import tqdm
+
+    for tid, a, s in tasks:
+        bar = tqdm(total=n_epochs, desc=f"{a:>7} seed {s}", disable=quiet, leave=True)
+        try:
+            res = run_algorithm(_DATASETS[s], a, s, settings, lambda k, KK: bar.update(1))
+            handle(tid, res, None)
+        except Exception as e:  # noqa: BLE001
+            handle(tid, None, describe_estimator_failure(a, s, e) + "\n" + traceback.format_exc())
+        bar.close()
+
+
+def _run_pool(tasks, jobs: int, ctx, n_epochs: int, quiet: bool, handle) -> None:
+    """Forked workers (they inherit _DATASETS and _SETTINGS) report progress through _QUEUE."""
+    global _QUEUE
+    import queue as _q
+
+    from tqdm import tqdm
+
+    _QUEUE = ctx.Queue()
+    with ctx.Pool(min(jobs, len(tasks)), initializer=_limit_threads) as pool:
+        pending = [pool.apply_async(_run_task, (t,)) for t in tasks]
+        bars = {tid: tqdm(total=n_epochs, desc=f"{a:>7} seed {s}", position=pos, disable=quiet, leave=True)
+                for pos, (tid, a, s) in enumerate(tasks)}
+        while pending:
+            try:
+                while True:
+                    tid, n = _QUEUE.get(timeout=0.2)
+                    bars[tid].update(n)
+            except _q.Empty:
+                pass
+            for p in [p for p in pending if p.ready()]:
+                pending.remove(p)
+                handle(*p.get())
+        for b in bars.values():
+            b.close()
+    _QUEUE = None
+
+
+def run(args) -> int:
+    """Load (datasets, settings) -> run every algorithm over every seed -> assemble and write the report."""
+    global _SETTINGS
+    import multiprocessing as mp
+
     from swarmnav.assembly import assemble_report
     from swarmnav.evaluation import link_labels, truth_at_epochs
     from swarmnav.report import render_markdown, summary_table, validate_report
 
     from services.provenance import provenance
 
+    t_wall = time.perf_counter()
+    jobs, algos = _check_run_args(args)
+    name, seeds, settings, cfg_sha, ds_given, cfg_path = _load_inputs(args)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    handler = _setup_log(out)
+    _SETTINGS = settings
+    log.info("evaluate %s: algos=%s seeds=%s settings=%s", name, algos, seeds, settings)
+    ctx = mp.get_context("fork")
+    _make_datasets(seeds, ds_given, cfg_path, args.set, jobs, ctx, bool(args.quiet))
+    meta = _DATASETS[seeds[0]].meta
+    results, failures = _run_tasks(_tasks(algos, seeds), settings, jobs, ctx, meta.n_epochs(), bool(args.quiet))
+
     truths = {s: truth_at_epochs(_DATASETS[s]) for s in seeds}
-    windows = meta.gnss_outages
     ran = [a for a in algos if all((a, s) in results for s in seeds)]
     # the one report assembly, shared with the monitor (swarmnav.assembly)
     rep = assemble_report(mode="in-process", meta=meta, seeds=seeds, runs={a: [results[(a, s)] for s in seeds] for a in ran},
                           truths=[truths[s] for s in seeds], labels=[link_labels(_DATASETS[s]) for s in seeds],
                           settings=settings, provenance=provenance(cfg_sha), source="config" if args.config else "dataset",
                           failed=failures, ranges=[_DATASETS[s].table("ranges") for s in seeds])
-    dl = rep["thresholds"]["delta_l_m"]
     problems = validate_report(rep)
     if problems:
         log.error("report.json does not meet the contract: %s", problems)
     (out / "report.json").write_text(json.dumps(rep, indent=1, sort_keys=False) + "\n")
     (out / "report.md").write_text(render_markdown(rep))
-
-    s0 = seeds[0]
-    res0 = {a: results[(a, s0)] for a in ran}
-    from services.figures import write_figures
-
-    write_figures(out, res0, truths[s0], {a: [results[(a, s)] for s in seeds] for a in ran},
-                  [truths[s] for s in seeds], windows, _DATASETS[s0], meta, dl)
-    _write_tum(out, results, truths, seeds, ran)
-    if not args.no_rrd:
-        _write_rrd(out / "evaluate.rrd", res0, truths[s0], meta.anchors())
+    _write_views(out, rep, results, truths, seeds, ran, meta, rrd=not args.no_rrd)
     wall = time.perf_counter() - t_wall
     log.info("done in %.1f s", wall)
     print(summary_table(rep))
@@ -334,6 +347,19 @@ def run(args) -> int:
     logging.getLogger("swarmnav").removeHandler(handler)
     handler.close()
     return 1 if failures or problems else 0
+
+
+def _write_views(out: Path, rep: dict, results: dict, truths: dict, seeds: list[int], ran: list[str], meta, rrd: bool) -> None:
+    """figures/*.png, traj/**.tum and (unless rrd is False) evaluate.rrd: the first seed is shown."""
+    from services.figures import write_figures
+
+    s0 = seeds[0]
+    res0 = {a: results[(a, s0)] for a in ran}
+    write_figures(out, res0, truths[s0], {a: [results[(a, s)] for s in seeds] for a in ran},
+                  [truths[s] for s in seeds], meta.gnss_outages, _DATASETS[s0], meta, rep["thresholds"]["delta_l_m"])
+    _write_tum(out, results, truths, seeds, ran)
+    if rrd:
+        _write_rrd(out / "evaluate.rrd", res0, truths[s0], meta.anchors())
 
 
 # -- outputs ------------------------------------------------------------------------------------
