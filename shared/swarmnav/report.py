@@ -161,116 +161,128 @@ def _pct(x) -> str:
 
 
 def render_markdown(rep: dict) -> str:
+    """report.md: the human-readable view of report.json, one section per helper below."""
     algos = rep["algorithms"]
-    L: list[str] = []
-    L.append(f"# swarmnav report — {rep['scenario']} ({rep['mode']})")
+    L = _intro_md(rep)
+    mc = rep.get("monte_carlo") or {}
+    if (mc.get("n_seeds") or 0) >= 2:
+        L.extend(monte_carlo_markdown(mc))
+        L.append("")
+    L.extend(_rmse_md(algos))
+    if any("outage_pos_rmse_m" in a for a in algos.values()):
+        L.extend(_outage_md(algos))
+    if any(a.get("nees_mean") is not None for a in algos.values()):
+        L.append("")
+        L.extend(consistency_markdown(algos))
+    if rep["improvement_pct"]:
+        L.extend(_improvement_md(rep["improvement_pct"]))
+    det = (algos.get("atvfg") or {}).get("detection")
+    single = rep.get("detection_single_threshold")
+    if det or single:
+        L.extend(_detection_md(det, single))
+    th = rep["thresholds"]
     L.append("")
-    L.append(f"Seeds {rep['seeds']}, {rep['n_uavs']} UAVs, {rep['duration_s']:g} s. "
-             "RMSE pooled over UAVs, epochs and seeds (paper eq. 28; NEES and detection scoring: docs/estimators.md).")
+    L.append(f"Thresholds: Δl = {_f(th['delta_l_m'], 3)} m; Δh p50 = {_f(th['delta_h_m'].get('p50'), 3)} m, "
+             f"p95 = {_f(th['delta_h_m'].get('p95'), 3)} m." + _delta_l_note(th))
+    L.append("")
+    L.extend(_per_uav_md(algos))
+    L.append("")
+    L.extend(_run_md(rep))
+    return "\n".join(L)
+
+
+def _intro_md(rep: dict) -> list[str]:
+    """Title, what was run, which seeds these are (report or tuning) and the oracle note."""
+    L = [f"# swarmnav report — {rep['scenario']} ({rep['mode']})", "",
+         f"Seeds {rep['seeds']}, {rep['n_uavs']} UAVs, {rep['duration_s']:g} s. "
+         "RMSE pooled over UAVs, epochs and seeds (paper eq. 28; NEES and detection scoring: docs/estimators.md)."]
     ev = rep.get("evaluation")
     if ev:
         role = {"report": "the scenario's report seeds", "tuning": "**tuning seeds**: numbers not to report",
                 "mixed": "**partly tuning seeds**: numbers not to report"}.get(ev.get("seeds_role"), "seeds the scenario names neither for tuning nor for reporting")
         L.append(f"These are {role} (settings tuned on seeds {_seed_text(ev.get('tuning_seeds') or [])}"
                  + (f" and on {', '.join(ev['tuning_scenarios'])}" if ev.get("tuning_scenarios") else "") + ").")
-    if "central" in algos:
+    if "central" in rep["algorithms"]:
         L.append("`central` is an **oracle**: one joint graph with the truly faulty links removed using the labels.")
     L.append("")
-    mc = rep.get("monte_carlo") or {}
-    if (mc.get("n_seeds") or 0) >= 2:
-        L.extend(monte_carlo_markdown(mc))
-        L.append("")
-    L.append("## Table 2 — position RMSE of each algorithm (m)")
-    L.append("")
-    L.append("| Algorithm | E | N | U | 3-D | UAV 1 E | UAV 1 N | UAV 1 U | UAV 1 3-D | vel 3-D (m/s) | NEES (3) | step p50 (ms) | step p99 (ms) |")
-    L.append("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    return L
+
+
+def _rmse_md(algos: dict) -> list[str]:
+    """Table 2 (position RMSE, NEES, step times) and the velocity RMSE table."""
+    L = ["## Table 2 — position RMSE of each algorithm (m)", "",
+         "| Algorithm | E | N | U | 3-D | UAV 1 E | UAV 1 N | UAV 1 U | UAV 1 3-D | vel 3-D (m/s) | NEES (3) | step p50 (ms) | step p99 (ms) |",
+         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for name, a in algos.items():
         p, u1, v = a["pos_rmse_m"], a["uav1_pos_rmse_m"], a["vel_rmse_mps"]
         L.append(f"| {name} | {_f(p['e'])} | {_f(p['n'])} | {_f(p['u'])} | **{_f(p['3d'])}** | {_f(u1['e'])} | "
                  f"{_f(u1['n'])} | {_f(u1['u'])} | {_f(u1['3d'])} | {_f(v['3d'], 3)} | {_f(a['nees'])} | "
                  f"{_f(a['step_ms']['p50'])} | {_f(a['step_ms']['p99'])} |")
-    L.append("")
-    L.append("### Velocity RMSE (m/s)")
-    L.append("")
-    L.append("| Algorithm | E | N | U | 3-D |")
-    L.append("|---|---:|---:|---:|---:|")
+    L += ["", "### Velocity RMSE (m/s)", "", "| Algorithm | E | N | U | 3-D |", "|---|---:|---:|---:|---:|"]
     for name, a in algos.items():
         v = a["vel_rmse_mps"]
         L.append(f"| {name} | {_f(v['e'], 3)} | {_f(v['n'], 3)} | {_f(v['u'], 3)} | {_f(v['3d'], 3)} |")
-    if any("outage_pos_rmse_m" in a for a in algos.values()):
-        L.append("")
-        L.append("## Table 3 — normal vs GNSS-denied (UAVs that lose GNSS; inside vs outside the outage windows)")
-        L.append("")
-        L.append("| Algorithm | pos normal E | N | U | 3-D | pos denied E | N | U | 3-D | denied/normal | vel normal 3-D | vel denied 3-D |")
-        L.append("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-        for name, a in algos.items():
-            if "outage_pos_rmse_m" not in a:
-                continue
-            nm, ou = a["nominal_pos_rmse_m"], a["outage_pos_rmse_m"]
-            ratio = (ou["3d"] / nm["3d"]) if (ou["3d"] is not None and nm["3d"]) else None
-            vn = (a.get("nominal_vel_rmse_mps") or {}).get("3d")
-            vo = (a.get("outage_vel_rmse_mps") or {}).get("3d")
-            L.append(f"| {name} | {_f(nm['e'])} | {_f(nm['n'])} | {_f(nm['u'])} | {_f(nm['3d'])} | {_f(ou['e'])} | "
-                     f"{_f(ou['n'])} | {_f(ou['u'])} | {_f(ou['3d'])} | {_f(ratio)} | {_f(vn, 3)} | {_f(vo, 3)} |")
-    if any(a.get("nees_mean") is not None for a in algos.values()):
-        L.append("")
-        L.extend(consistency_markdown(algos))
-    if rep["improvement_pct"]:
-        L.append("")
-        L.append("## Improvement of atvfg (swarm 3-D position RMSE)")
-        L.append("")
-        L.append("| Comparison | Improvement | Paper |")
-        L.append("|---|---:|---:|")
-        paper = {"atvfg_vs_fg": "47.4 %", "atvfg_vs_fkf": "52.6 %"}
-        for k, v in rep["improvement_pct"].items():
-            L.append(f"| {k.replace('_', ' ')} | {_f(v, 1)} % | {paper.get(k, '—')} |")
-    det = (algos.get("atvfg") or {}).get("detection")
-    single = rep.get("detection_single_threshold")
-    if det or single:
-        L.append("")
-        L.append("## Fault detection (atvfg), per link classification vs labels")
-        L.append("")
-        L.append("| Test | Precision | Recall | False-alarm rate | TP | FP | FN | TN |")
-        L.append("|---|---:|---:|---:|---:|---:|---:|---:|")
-        for label, d in (("double threshold (H0 or H1)", det), ("single threshold at Δh (H0)", single)):
-            if d:
-                L.append(f"| {label} | {_pct(d['precision'])} | {_pct(d['recall'])} | {_pct(d['false_alarm_rate'])} | "
-                         f"{d.get('tp', '—')} | {d.get('fp', '—')} | {d.get('fn', '—')} | {d.get('tn', '—')} |")
-    th = rep["thresholds"]
-    L.append("")
-    L.append(f"Thresholds: Δl = {_f(th['delta_l_m'], 3)} m; Δh p50 = {_f(th['delta_h_m'].get('p50'), 3)} m, "
-             f"p95 = {_f(th['delta_h_m'].get('p95'), 3)} m." + _delta_l_note(th))
-    L.append("")
-    L.append("## Per-UAV 3-D position RMSE (m)")
-    L.append("")
+    return L
+
+
+def _outage_md(algos: dict) -> list[str]:
+    """Table 3: UAVs that lose GNSS, inside vs outside the outage windows."""
+    L = ["", "## Table 3 — normal vs GNSS-denied (UAVs that lose GNSS; inside vs outside the outage windows)", "",
+         "| Algorithm | pos normal E | N | U | 3-D | pos denied E | N | U | 3-D | denied/normal | vel normal 3-D | vel denied 3-D |",
+         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for name, a in algos.items():
+        if "outage_pos_rmse_m" not in a:
+            continue
+        nm, ou = a["nominal_pos_rmse_m"], a["outage_pos_rmse_m"]
+        ratio = (ou["3d"] / nm["3d"]) if (ou["3d"] is not None and nm["3d"]) else None
+        vn = (a.get("nominal_vel_rmse_mps") or {}).get("3d")
+        vo = (a.get("outage_vel_rmse_mps") or {}).get("3d")
+        L.append(f"| {name} | {_f(nm['e'])} | {_f(nm['n'])} | {_f(nm['u'])} | {_f(nm['3d'])} | {_f(ou['e'])} | "
+                 f"{_f(ou['n'])} | {_f(ou['u'])} | {_f(ou['3d'])} | {_f(ratio)} | {_f(vn, 3)} | {_f(vo, 3)} |")
+    return L
+
+
+def _improvement_md(improvement: dict) -> list[str]:
+    L = ["", "## Improvement of atvfg (swarm 3-D position RMSE)", "", "| Comparison | Improvement | Paper |", "|---|---:|---:|"]
+    paper = {"atvfg_vs_fg": "47.4 %", "atvfg_vs_fkf": "52.6 %"}
+    for k, v in improvement.items():
+        L.append(f"| {k.replace('_', ' ')} | {_f(v, 1)} % | {paper.get(k, '—')} |")
+    return L
+
+
+def _detection_md(det: dict | None, single: dict | None) -> list[str]:
+    L = ["", "## Fault detection (atvfg), per link classification vs labels", "",
+         "| Test | Precision | Recall | False-alarm rate | TP | FP | FN | TN |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for label, d in (("double threshold (H0 or H1)", det), ("single threshold at Δh (H0)", single)):
+        if d:
+            L.append(f"| {label} | {_pct(d['precision'])} | {_pct(d['recall'])} | {_pct(d['false_alarm_rate'])} | "
+                     f"{d.get('tp', '—')} | {d.get('fp', '—')} | {d.get('fn', '—')} | {d.get('tn', '—')} |")
+    return L
+
+
+def _per_uav_md(algos: dict) -> list[str]:
     names = list(algos)
     ids = sorted({int(i) for a in algos.values() for i in a["per_uav_pos_rmse_m"]})
-    L.append("| UAV | " + " | ".join(names) + " |")
-    L.append("|---:|" + "---:|" * len(names))
+    L = ["## Per-UAV 3-D position RMSE (m)", "", "| UAV | " + " | ".join(names) + " |", "|---:|" + "---:|" * len(names)]
     for i in ids:
         L.append(f"| {i} | " + " | ".join(_f(algos[n]["per_uav_pos_rmse_m"].get(str(i))) for n in names) + " |")
-    L.append("")
+    return L
+
+
+def _run_md(rep: dict) -> list[str]:
+    """Completeness (distributed runs), events and provenance."""
+    L = []
     if "complete" in rep:
-        L.append("## Completeness")
-        L.append("")
-        L.append(completeness_text(rep))
-        L.append("")
-    L.append("## Events")
-    L.append("")
+        L += ["## Completeness", "", completeness_text(rep), ""]
+    L += ["## Events", ""]
     if rep["events"]:
-        for e in rep["events"]:
-            L.append(f"- {event_line(e)}")
+        L += [f"- {event_line(e)}" for e in rep["events"]]
     else:
         L.append("none" + (" (process kills and restarts happen only in distributed runs)" if rep["mode"] == "in-process" else ""))
     pv = rep["provenance"]
-    L.append("")
-    L.append("## Provenance")
-    L.append("")
-    L.append(f"git `{pv.get('git')}`, config sha256 `{pv.get('config_sha256')}`")
-    L.append("")
-    L.append(", ".join(f"{k} {v}" for k, v in sorted((pv.get("packages") or {}).items())))
-    L.append("")
-    return "\n".join(L)
+    L += ["", "## Provenance", "", f"git `{pv.get('git')}`, config sha256 `{pv.get('config_sha256')}`", "",
+          ", ".join(f"{k} {v}" for k, v in sorted((pv.get("packages") or {}).items())), ""]
+    return L
 
 
 def _ci(d: dict | None, nd: int = 3) -> str:
