@@ -131,44 +131,14 @@ def assemble_report(*, mode: str, meta, seeds: Sequence[int], runs: Mapping[str,
         rs = list(rs)
         if len(rs) != len(truths) or len(rs) != len(labels):
             raise ValueError(f"{a}: {len(rs)} runs for {len(truths)} truths and {len(labels)} label sets")
-        tr0 = truths[0]
-        b = metrics.algorithm_metrics(tr0.uavs, tr0.t, [r.pos - t.pos for r, t in zip(rs, truths)],
-                                      [r.vel - t.vel for r, t in zip(rs, truths)], [r.pos_cov for r in rs],
-                                      [r.step_ms for r in rs], windows)
-        got = np.concatenate([np.isfinite(r.pos[..., 0]).ravel() for r in rs])
-        rounds = np.concatenate([np.asarray(r.rounds, float).ravel() for r in rs])[got]
-        b["rounds_mean"] = float(np.mean(rounds)) if len(rounds) else None
-        wall = float(sum(r.wall_s for r in rs))
-        if wall > 0:
-            b["wall_s"] = wall
-        th = threshold_block(rs)
+        blocks[a], th, dets = _algorithm_block(rs, truths, labels, meta, windows, ranges)
         if th is not None:
-            thresholds[a] = th
-            b["thresholds"] = th
-            lk, lb = [], []
-            for i, (r, lab) in enumerate(zip(rs, labels)):  # epochs made unique across seeds
-                off = i * (len(r.t) + 1)
-                x, y = r.links.copy(), np.asarray(lab).copy()
-                x["k"] += off
-                y["k"] += off
-                lk.append(x)
-                lb.append(y)
-            detections[a] = metrics.detection_report(np.concatenate(lk), np.concatenate(lb), meta.fault_threshold_m)
-            b["detection"] = detections[a][0]  # (build_report sets atvfg's to the same scores)
-        if ranges is not None:
-            b["range_nis"] = _range_nis(meta, rs, ranges)
-        blocks[a] = b
+            thresholds[a], detections[a] = th, dets
     head = HEADLINE_ALGO if HEADLINE_ALGO in thresholds else next(iter(thresholds), None)
     det, single = detections.get(head, (None, None)) if head else (None, None)
     configured = settings.get("delta_l_m")
     th_head = thresholds.get(head) if head else None
     used = th_head["delta_l_used_m"] if th_head else None
-    if used is None:
-        source_dl = "not used (no algorithm that ran reported a Δl)"
-    elif configured is not None and abs(used - float(configured)) <= 1e-12 * max(1.0, abs(used)):
-        source_dl = "delta_l_file"
-    else:
-        source_dl = "estimator fallback: delta_l_fallback_sigmas x the data's ranging sigma"
     comp = completeness(runs, excused, done, lost_epochs, conflicts)
     ex = {**comp, "rejected": dict(rejected or {}), "source": source, "failed": dict(failed or {}),
           "gnss_outages": [w.model_dump() if hasattr(w, "model_dump") else dict(w) for w in windows],
@@ -187,6 +157,48 @@ def assemble_report(*, mode: str, meta, seeds: Sequence[int], runs: Mapping[str,
         "delta_l_used_by_uav_m": dict(th_head["delta_l_used_by_uav_m"]) if th_head else {},
         "delta_l_algorithm": head,
         "delta_l_configured_m": configured,
-        "delta_l_source": source_dl,
+        "delta_l_source": _delta_l_source(used, configured),
     })
     return rep
+
+
+def _algorithm_block(rs: list[RunResult], truths: Sequence[Truth], labels: Sequence[np.ndarray], meta, windows: list,
+                     ranges: Sequence | None) -> tuple[dict, dict | None, tuple | None]:
+    """One algorithm's report block over its seeds' runs, with its Δl/Δh thresholds and detection
+    scores (None for an algorithm that classifies no links). -> (block, thresholds, detection_report)."""
+    tr0 = truths[0]
+    b = metrics.algorithm_metrics(tr0.uavs, tr0.t, [r.pos - t.pos for r, t in zip(rs, truths)],
+                                  [r.vel - t.vel for r, t in zip(rs, truths)], [r.pos_cov for r in rs],
+                                  [r.step_ms for r in rs], windows)
+    got = np.concatenate([np.isfinite(r.pos[..., 0]).ravel() for r in rs])
+    rounds = np.concatenate([np.asarray(r.rounds, float).ravel() for r in rs])[got]
+    b["rounds_mean"] = float(np.mean(rounds)) if len(rounds) else None
+    wall = float(sum(r.wall_s for r in rs))
+    if wall > 0:
+        b["wall_s"] = wall
+    th = threshold_block(rs)
+    dets = None
+    if th is not None:
+        b["thresholds"] = th
+        lk, lb = [], []
+        for i, (r, lab) in enumerate(zip(rs, labels)):  # epochs made unique across seeds
+            off = i * (len(r.t) + 1)
+            x, y = r.links.copy(), np.asarray(lab).copy()
+            x["k"] += off
+            y["k"] += off
+            lk.append(x)
+            lb.append(y)
+        dets = metrics.detection_report(np.concatenate(lk), np.concatenate(lb), meta.fault_threshold_m)
+        b["detection"] = dets[0]  # (build_report sets atvfg's to the same scores)
+    if ranges is not None:
+        b["range_nis"] = _range_nis(meta, rs, ranges)
+    return b, th, dets
+
+
+def _delta_l_source(used: float | None, configured) -> str:
+    """Where the headline algorithm's Δl came from: the delta_l_file, the estimator's fallback, or nowhere."""
+    if used is None:
+        return "not used (no algorithm that ran reported a Δl)"
+    if configured is not None and abs(used - float(configured)) <= 1e-12 * max(1.0, abs(used)):
+        return "delta_l_file"
+    return "estimator fallback: delta_l_fallback_sigmas x the data's ranging sigma"
