@@ -199,8 +199,7 @@ def launch(spec: LaunchSpec) -> LaunchResult:
         viewer.expected_kill = True  # stopped with the run on purpose: its exit status says nothing
         procs.append(viewer)
     events: list[dict] = []
-    status, reason = 0, None
-    t0 = time.monotonic()
+    t0 = time.monotonic()  # --timeout counts from here
     bar = tqdm(total=spec.n_epochs, desc="epochs", unit="ep", disable=not spec.progress, file=sys.stderr)
     stopping = {"sig": None}
 
@@ -208,65 +207,13 @@ def launch(spec: LaunchSpec) -> LaunchResult:
         stopping["sig"] = signum
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
-    done = False
-    last_t = 0.0
     try:
         with zenoh.open(sec.router_config()) as session:
             clock = session.declare_subscriber(keys.clock(run_id), zenoh.handlers.FifoChannel(10000))
             try:
                 for p in procs:
                     start(p)
-                last_k = 0
-                while not done:
-                    if stopping["sig"] is not None:
-                        status, reason = 130, f"stopped by {signal.Signals(stopping['sig']).name}"
-                        break
-                    if time.monotonic() - t0 > spec.timeout_s:
-                        status, reason = 1, f"timed out after {spec.timeout_s:.0f} s (--timeout)"
-                        break
-                    dead = [p for p in (sim, mon) if p.p.poll() is not None]
-                    if dead:
-                        p = dead[0]
-                        status = 1
-                        reason = (f"the {p.name.replace('_', '-')} died ({describe_exit(p.p.returncode)}) at epoch "
-                                  f"{last_k} before the run was done: stopping the run{_last_error(p.log)} (see {p.log})")
-                        break
-                    for u, n in nodes.items():
-                        if n.p.poll() is not None and not n.expected_kill and not getattr(n, "_reported", False):
-                            n._reported = True
-                            ev = {"t": last_t, "kind": "process_died", "uav": u, "detail": describe_exit(n.p.returncode)}
-                            events.append(ev)
-                            print(f"\nswarmnav launch: UAV {u}'s process died unscheduled ({describe_exit(n.p.returncode)}) "
-                                  f"at epoch {last_k}; the swarm goes on without it (see {n.log})", file=sys.stderr)
-                    s = clock.try_recv()
-                    if s is None:
-                        time.sleep(0.02)
-                        continue
-                    try:
-                        c = M.decode(M.ClockMsg, s.payload.to_bytes())
-                    except M.WireError:
-                        continue
-                    last_t = c.t
-                    if c.k > last_k and not c.done:
-                        bar.update(c.k - last_k)
-                        last_k = c.k
-                    if c.hold == "kill" and c.hold_uav in nodes:
-                        n = nodes[c.hold_uav]
-                        if n.p.poll() is None:
-                            n.expected_kill = True
-                            n.p.send_signal(signal.SIGKILL)
-                            n.history.append(n.p.wait())
-                    elif c.hold == "restart" and c.hold_uav in nodes:
-                        n = nodes[c.hold_uav]
-                        if n.p.poll() is not None:
-                            if not n.expected_kill:
-                                n.history.append(n.p.returncode)
-                            n.expected_kill = False
-                            n._reported = False
-                            n.argv = n.argv + (["--rejoin"] if "--rejoin" not in n.argv else [])
-                            start(n)
-                    if c.done:
-                        done = True
+                done, status, reason = _supervise(spec, t0, clock, sim, mon, nodes, bar, stopping, events)
                 bar.close()
                 if done:  # the run is over: let the services finish on their own (the monitor writes its report)
                     _wait_finish(sim, mon, nodes, stopping)
@@ -288,6 +235,69 @@ def launch(spec: LaunchSpec) -> LaunchResult:
         if rc != 0 and status == 0 and not p.expected_kill:
             status = 1
     return LaunchResult(status, summary, reason, events, sec.report_block())
+
+
+def _supervise(spec: LaunchSpec, t0: float, clock, sim: Proc, mon: Proc, nodes: dict[int, Proc], bar, stopping: dict,
+               events: list[dict]) -> tuple[bool, int, str | None]:
+    """Follow the sensor-sim's clock until it says done: progress, scheduled kills and restarts
+    (``hold``), unscheduled deaths (appended to ``events``). Stops early on a signal, the timeout or
+    the death of the sensor-sim or the monitor (``t0``: time.monotonic() at the launch). -> (done, status, reason)."""
+    last_k, last_t = 0, 0.0
+    while True:
+        if stopping["sig"] is not None:
+            return False, 130, f"stopped by {signal.Signals(stopping['sig']).name}"
+        if time.monotonic() - t0 > spec.timeout_s:
+            return False, 1, f"timed out after {spec.timeout_s:.0f} s (--timeout)"
+        dead = [p for p in (sim, mon) if p.p.poll() is not None]
+        if dead:
+            p = dead[0]
+            return False, 1, (f"the {p.name.replace('_', '-')} died ({describe_exit(p.p.returncode)}) at epoch "
+                              f"{last_k} before the run was done: stopping the run{_last_error(p.log)} (see {p.log})")
+        _note_unscheduled_deaths(nodes, events, last_t, last_k)
+        s = clock.try_recv()
+        if s is None:
+            time.sleep(0.02)
+            continue
+        try:
+            c = M.decode(M.ClockMsg, s.payload.to_bytes())
+        except M.WireError:
+            continue
+        last_t = c.t
+        if c.k > last_k and not c.done:
+            bar.update(c.k - last_k)
+            last_k = c.k
+        _act_on_hold(c, nodes)
+        if c.done:
+            return True, 0, None
+
+
+def _note_unscheduled_deaths(nodes: dict[int, Proc], events: list[dict], last_t: float, last_k: int) -> None:
+    """A node process that died without being killed on schedule: an event, reported once; the swarm goes on."""
+    for u, n in nodes.items():
+        if n.p.poll() is not None and not n.expected_kill and not getattr(n, "_reported", False):
+            n._reported = True
+            events.append({"t": last_t, "kind": "process_died", "uav": u, "detail": describe_exit(n.p.returncode)})
+            print(f"\nswarmnav launch: UAV {u}'s process died unscheduled ({describe_exit(n.p.returncode)}) "
+                  f"at epoch {last_k}; the swarm goes on without it (see {n.log})", file=sys.stderr)
+
+
+def _act_on_hold(c, nodes: dict[int, Proc]) -> None:
+    """The clock holds for a scheduled fault: SIGKILL the UAV's process, or restart it (``--rejoin``)."""
+    if c.hold == "kill" and c.hold_uav in nodes:
+        n = nodes[c.hold_uav]
+        if n.p.poll() is None:
+            n.expected_kill = True
+            n.p.send_signal(signal.SIGKILL)
+            n.history.append(n.p.wait())
+    elif c.hold == "restart" and c.hold_uav in nodes:
+        n = nodes[c.hold_uav]
+        if n.p.poll() is not None:
+            if not n.expected_kill:
+                n.history.append(n.p.returncode)
+            n.expected_kill = False
+            n._reported = False
+            n.argv = n.argv + (["--rejoin"] if "--rejoin" not in n.argv else [])
+            start(n)
 
 
 def rerun_binary() -> Path:
