@@ -415,6 +415,20 @@ def write_plot(res: dict, path: Path) -> None:
 
 
 def render_md(res: dict) -> str:
+    """bench.md from bench.json: in-process cost against N, distributed against in-process, profiles."""
+    ok = sorted((r for r in res["inproc"] if "error" not in r), key=lambda r: r["n"])
+    L = _inproc_md(res) + _growth_md(ok) + _dist_md(res) + _profile_md(res.get("profile"))
+    L += _profile_growth_md(res.get("profile_growth"))
+    notes = res.get("notes") or []
+    if notes:
+        L += ["", "## Notes", ""] + [f"- {n}" for n in notes]
+    L += ["", "Figure: `cost_vs_n.png`. Raw figures: `bench.json`. Rebuild: `make bench` (or "
+              "`python -m deploy.bench --out DIR`; `--quick` for a 1-minute check).", ""]
+    return "\n".join(L)
+
+
+def _inproc_md(res: dict) -> list[str]:
+    """Header and the in-process table, one row per size."""
     L = [f"# swarmnav scale bench — {res['started']}", "",
          f"Host: {res['host']['cpus']} CPUs, {res['host']['mem_gb']:.0f} GB, Python {res['host']['python']}; "
          f"commit {res['commit']}. Scenario: configs/scale.toml (paper sensors and flight plan, the start box grown with "
@@ -440,32 +454,42 @@ def render_md(res: dict) -> str:
                  f"{r['outside_estimator_per_uav_epoch_ms']:.2f} | "
                  f"{r['epoch_wall_ms_p50']:.0f} | {r['realtime_factor']:.2f} | {r['rounds_mean']:.1f} | {r['simulate_s']:.1f} | "
                  f"{r['peak_rss_mb']:.0f} | {r['load1_before']}→{r['load1_after']} |")
-    ok = sorted((r for r in res["inproc"] if "error" not in r), key=lambda r: r["n"])
-    if len(ok) >= 2:
-        a, b = next((r for r in ok if r["n"] == 50), ok[0]), ok[-1]
-        g = b["wall_per_uav_epoch_ms"] / a["wall_per_uav_epoch_ms"]
-        L += ["", f"Per-UAV-epoch wall grows {g:.1f}× from N = {a['n']} to N = {b['n']} at fixed density "
-                  f"(the issue's target: flat within 1.5× from 50 to 1,000); the estimator step p50 grows "
-                  f"{b['step_ms_p50'] / a['step_ms_p50']:.1f}×."]
-    if len(ok) >= 2:
-        import math
+    return L
 
-        L += ["", "Growth between consecutive sizes as an exponent b of cost per UAV-epoch ∝ N^b (b ≈ 0: the per-UAV "
-                  "cost is flat, O(neighbours); b ≈ 1: the swarm's cost per epoch grows O(N²)):", "",
-              "| N from → to | b (wall/UAV-epoch) | b (CPU/UAV-epoch) | b (step p50) | b (outside the estimator) | "
-              "b (simulate s / N) | load1 |", "|---|---:|---:|---:|---:|---:|---|"]
-        for a, b in zip(ok, ok[1:]):
-            def ex(key, per_n=False):
-                x, y = a.get(key), b.get(key)
-                if not x or not y or x <= 0 or y <= 0:
-                    return "—"
-                if per_n:
-                    x, y = x / a["n"], y / b["n"]
-                return f"{math.log(y / x) / math.log(b['n'] / a['n']):.2f}"
-            L.append(f"| {a['n']} → {b['n']} | {ex('wall_per_uav_epoch_ms')} | {ex('cpu_per_uav_epoch_ms')} | "
-                     f"{ex('step_ms_p50')} | {ex('outside_estimator_per_uav_epoch_ms')} | {ex('simulate_s', True)} | "
-                     f"{a['load1_after']}→{b['load1_after']} |")
-    L += ["", "## Distributed against in-process, back to back", "",
+
+def _growth_md(ok: list[dict]) -> list[str]:
+    """How the per-UAV-epoch cost grows from the smallest (or N = 50) to the largest size, and the
+    exponent b of cost ∝ N^b between consecutive sizes."""
+    import math
+
+    if len(ok) < 2:
+        return []
+    a, b = next((r for r in ok if r["n"] == 50), ok[0]), ok[-1]
+    g = b["wall_per_uav_epoch_ms"] / a["wall_per_uav_epoch_ms"]
+    L = ["", f"Per-UAV-epoch wall grows {g:.1f}× from N = {a['n']} to N = {b['n']} at fixed density "
+             f"(the issue's target: flat within 1.5× from 50 to 1,000); the estimator step p50 grows "
+             f"{b['step_ms_p50'] / a['step_ms_p50']:.1f}×."]
+    L += ["", "Growth between consecutive sizes as an exponent b of cost per UAV-epoch ∝ N^b (b ≈ 0: the per-UAV "
+              "cost is flat, O(neighbours); b ≈ 1: the swarm's cost per epoch grows O(N²)):", "",
+          "| N from → to | b (wall/UAV-epoch) | b (CPU/UAV-epoch) | b (step p50) | b (outside the estimator) | "
+          "b (simulate s / N) | load1 |", "|---|---:|---:|---:|---:|---:|---|"]
+    for a, b in zip(ok, ok[1:]):
+        def ex(key, per_n=False):
+            x, y = a.get(key), b.get(key)
+            if not x or not y or x <= 0 or y <= 0:
+                return "—"
+            if per_n:
+                x, y = x / a["n"], y / b["n"]
+            return f"{math.log(y / x) / math.log(b['n'] / a['n']):.2f}"
+        L.append(f"| {a['n']} → {b['n']} | {ex('wall_per_uav_epoch_ms')} | {ex('cpu_per_uav_epoch_ms')} | "
+                 f"{ex('step_ms_p50')} | {ex('outside_estimator_per_uav_epoch_ms')} | {ex('simulate_s', True)} | "
+                 f"{a['load1_after']}→{b['load1_after']} |")
+    return L
+
+
+def _dist_md(res: dict) -> list[str]:
+    """The distributed runs against their in-process twins, and the launch's peak memory per process kind."""
+    L = ["", "## Distributed against in-process, back to back", "",
           "The same scenario (N, scenario seconds, seed) run by `swarmnav evaluate --algos atvfg --jobs 1` and then by "
           "`swarmnav launch` (one process per UAV, secure Zenoh, lockstep); walls of the whole commands (simulation, "
           "start-up and report included). *real-time ×* = scenario s / launch wall. Bytes = the monitor's mean bytes a "
@@ -499,7 +523,12 @@ def render_md(res: dict) -> str:
                 L.append(f"| {d['n']} | {kind} | {m['processes']} | {m['peak_rss_mb_max']:.0f} | {m['peak_rss_mb_median']:.0f} | "
                          f"{_f(m['peak_pss_mb_max'], '{:.0f}')} | {_f(m['peak_pss_mb_median'], '{:.0f}')} | "
                          f"{d.get('load1_max_during_dist')} |")
-    p = res.get("profile")
+    return L
+
+
+def _profile_md(p: dict | None) -> list[str]:
+    """The hot spots of the profiled size (own and cumulative CPU time)."""
+    L: list[str] = []
     if p and "by_tottime" in p:
         L += ["", f"## Profile: in-process N = {p['n']}, {p['duration_s']:g} s (cProfile, {p['total_s']:.1f} s "
                   f"profiled; load1 {p.get('load1')})", "",
@@ -514,27 +543,27 @@ def render_md(res: dict) -> str:
             L.append(f"| `{r['function']}` | {r['calls']:,} | {r['cumtime_s']:.2f} | {100 * r['cumtime_s'] / p['total_s']:.1f} |")
     elif p:
         L += ["", f"## Profile: failed ({p.get('error')})"]
-    g = res.get("profile_growth")
-    if g:
-        lin, quad = g["n_large"] / g["n_small"], (g["n_large"] / g["n_small"]) ** 2
-        L += ["", f"### What grows with N: own CPU time per function, N = {g['n_small']} → {g['n_large']} (same seconds of "
-                  f"scenario; whole run {g['total_small_s']:.1f} → {g['total_large_s']:.1f} s CPU, "
-                  f"×{g['total_large_s'] / max(g['total_small_s'], 1e-9):.1f})", "",
-              f"×{lin:.0f} = the swarm's cost grows O(N) (flat per UAV: O(neighbours)); ×{quad:.0f} = it grows O(N²) "
-              "(every UAV does work for every other UAV).", "",
-              "| function | own s (small N) | own s (large N) | growth | order |", "|---|---:|---:|---:|---|"]
-        for r in g["rows"]:
-            ratio = r["ratio"]
-            order = "—" if ratio is None else ("O(N²)" if ratio > (lin * quad) ** 0.5 else "O(N)" if ratio > lin ** 0.5
-                                               else "flat")
-            L.append(f"| `{r['function']}` | {r['own_s_small']:.2f} | {r['own_s_large']:.2f} | "
-                     f"{'—' if ratio is None else f'×{ratio:.1f}'} | {order} |")
-    notes = res.get("notes") or []
-    if notes:
-        L += ["", "## Notes", ""] + [f"- {n}" for n in notes]
-    L += ["", "Figure: `cost_vs_n.png`. Raw figures: `bench.json`. Rebuild: `make bench` (or "
-              "`python -m deploy.bench --out DIR`; `--quick` for a 1-minute check).", ""]
-    return "\n".join(L)
+    return L
+
+
+def _profile_growth_md(g: dict | None) -> list[str]:
+    """Which functions' own CPU time grows O(N) or O(N²) between the two profiled sizes."""
+    if not g:
+        return []
+    lin, quad = g["n_large"] / g["n_small"], (g["n_large"] / g["n_small"]) ** 2
+    L = ["", f"### What grows with N: own CPU time per function, N = {g['n_small']} → {g['n_large']} (same seconds of "
+              f"scenario; whole run {g['total_small_s']:.1f} → {g['total_large_s']:.1f} s CPU, "
+              f"×{g['total_large_s'] / max(g['total_small_s'], 1e-9):.1f})", "",
+          f"×{lin:.0f} = the swarm's cost grows O(N) (flat per UAV: O(neighbours)); ×{quad:.0f} = it grows O(N²) "
+          "(every UAV does work for every other UAV).", "",
+          "| function | own s (small N) | own s (large N) | growth | order |", "|---|---:|---:|---:|---|"]
+    for r in g["rows"]:
+        ratio = r["ratio"]
+        order = "—" if ratio is None else ("O(N²)" if ratio > (lin * quad) ** 0.5 else "O(N)" if ratio > lin ** 0.5
+                                           else "flat")
+        L.append(f"| `{r['function']}` | {r['own_s_small']:.2f} | {r['own_s_large']:.2f} | "
+                 f"{'—' if ratio is None else f'×{ratio:.1f}'} | {order} |")
+    return L
 
 
 def _largest_duration(done: list[dict], n: int, dur_max: float, left_s: float) -> float:
@@ -559,15 +588,9 @@ def _largest_duration(done: list[dict], n: int, dur_max: float, left_s: float) -
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m deploy.bench", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", default=None, help="output directory (default bench/<timestamp>)")
-    ap.add_argument("--quick", action="store_true", help="small sizes only (a ~1-2 minute check of the harness)")
-    ap.add_argument("--no-dist", action="store_true", help="skip the distributed runs")
-    ap.add_argument("--no-profile", action="store_true", help="skip the cProfile run")
-    ap.add_argument("--one", nargs=2, metavar=("N", "DURATION_S"), help=argparse.SUPPRESS)  # worker mode
-    ap.add_argument("--json", help=argparse.SUPPRESS)
-    ap.add_argument("--profile", help=argparse.SUPPRESS)
-    a = ap.parse_args(argv)
+    """The scale bench within BUDGET_S: in-process sizes, two profiles, distributed runs with their
+    in-process twins; bench.json and bench.md rewritten after every step, then the plot."""
+    a = _parse_args(argv)
     if a.one:
         r = inproc_one(int(a.one[0]), float(a.one[1]), a.profile)
         Path(a.json).write_text(json.dumps(r, indent=1) + "\n")
@@ -578,17 +601,7 @@ def main(argv=None) -> int:
     out = Path(a.out) if a.out else REPO / "bench" / started
     out.mkdir(parents=True, exist_ok=True)
     inproc, dist, prof = (QUICK_INPROC, QUICK_DIST, QUICK_PROFILE) if a.quick else (INPROC, DIST, PROFILE)
-    import psutil
-
-    from swarmnav.config import load_config
-
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO, capture_output=True,
-                           text=True).stdout.strip()
-    res = {"started": started, "commit": commit + ("+dirty" if dirty else ""), "config": "configs/scale.toml",
-           "algo": ALGO, "seed": SEED, "density_per_km3": load_config(CONFIG).swarm.density_per_km3,
-           "host": {"cpus": os.cpu_count(), "mem_gb": psutil.virtual_memory().total / 2**30, "python": platform.python_version()},
-           "load1_start": load1(), "inproc": [], "dist": [], "profile": None, "notes": []}
+    res = _new_result(started)
 
     def left() -> float:
         return BUDGET_S - (time.perf_counter() - t_start)
@@ -599,56 +612,11 @@ def main(argv=None) -> int:
         (out / "bench.json").write_text(json.dumps(res, indent=1) + "\n")
         (out / "bench.md").write_text(render_md(res))
 
-    # 1. in-process sizes (the largest gets the epochs the budget allows: its row is the point)
-    for i, (n, dur) in enumerate(inproc):
-        last = i == len(inproc) - 1
-        if last and len(res["inproc"]) >= 2 and not a.quick:
-            dur = _largest_duration(res["inproc"], n, dur, left())
-        print(f"[bench] in-process N={n} ({dur:g} s scenario) — load1 {load1()}, {left():.0f} s of budget left", flush=True)
-        r = run_inproc(n, dur, out, timeout=max(60.0, left() - (20.0 if last else 60.0)))
-        res["inproc"].append(r)
-        print(f"[bench]   -> " + (f"failed: {r['error']}" if "error" in r else
-                                 f"step p50 {r['step_ms_p50']:.2f} ms p99 {r['step_ms_p99']:.2f} ms, wall/UAV-epoch "
-                                 f"{r['wall_per_uav_epoch_ms']:.2f} ms, CPU/UAV-epoch {r['cpu_per_uav_epoch_ms']:.2f} ms, "
-                                 f"{r['realtime_factor']:.3f}x real time, peak RSS {r['peak_rss_mb']:.0f} MB, "
-                                 f"load1 {r['load1_after']}"), flush=True)
-        save()
-    # 2. profiles (CPU time) at two sizes: the hot spots of the larger, and what grows with N
+    _bench_inproc(res, inproc, out, left, save, a.quick)
     if not a.no_profile:
-        profs = []
-        for n, dur in prof:
-            if left() < 60:
-                res["notes"].append(f"profile N = {n} skipped: the budget had {left():.0f} s left")
-                break
-            print(f"[bench] profile in-process N={n} ({dur:g} s) — load1 {load1()}", flush=True)
-            pf = out / f"profile-{n}.prof"
-            r = run_inproc(n, dur, out, profile=str(pf), timeout=max(60.0, min(400.0, left() - 30.0)))
-            if "error" in r or not pf.is_file():
-                res["profile"] = {"n": n, "duration_s": dur, "error": r.get("error", "no profile written")}
-                break
-            profs.append((n, pf))
-            res["profile"] = {"n": n, "duration_s": dur, "load1": r.get("load1_after"), "clock": "CPU time",
-                              **profile_summary(pf)}
-            save()
-        if len(profs) >= 2:
-            res["profile_growth"] = profile_growth(profs[0][1], profs[-1][1], profs[0][0], profs[-1][0])
-            save()
-    # 3. distributed, each with its in-process twin, while the budget allows
+        _bench_profiles(res, prof, out, left, save)
     if not a.no_dist:
-        for n, dur in dist:
-            # rough need: launch start-up ~0.25 s per process + the run at ~1x, plus the in-process twin
-            need = 40 + 0.6 * n + 1.5 * dur * max(1.0, n / 18)
-            if left() < need:
-                res["dist"].append({"n": n, "duration_s": dur, "skipped": f"time budget ({left():.0f} s left, ~{need:.0f} s needed)"})
-                res["notes"].append(f"distributed N = {n} skipped: the 15-minute budget had {left():.0f} s left")
-                continue
-            print(f"[bench] distributed N={n} ({dur:g} s) + in-process twin — load1 {load1()}, {left():.0f} s left", flush=True)
-            d = run_dist(n, dur, out, timeout=max(60.0, left() - 30.0))
-            res["dist"].append(d)
-            print(f"[bench]   -> launch {_f(d.get('dist_command_wall_s'), '{:.1f}')} s ({_f(d.get('dist_command_rtf'))}x), "
-                  f"in-process {_f(d.get('inproc_command_wall_s'), '{:.1f}')} s, ratio {_f(d.get('wall_ratio_dist_over_inproc'))}, "
-                  f"load1 {load1()}", flush=True)
-            save()
+        _bench_dist(res, dist, out, left, save)
     save()
     try:
         write_plot(res, out / "cost_vs_n.png")
@@ -659,6 +627,90 @@ def main(argv=None) -> int:
           f"(load1 {load1()})", flush=True)
     print((out / "bench.md").read_text())
     return 0
+
+
+def _parse_args(argv):
+    ap = argparse.ArgumentParser(prog="python -m deploy.bench", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default=None, help="output directory (default bench/<timestamp>)")
+    ap.add_argument("--quick", action="store_true", help="small sizes only (a ~1-2 minute check of the harness)")
+    ap.add_argument("--no-dist", action="store_true", help="skip the distributed runs")
+    ap.add_argument("--no-profile", action="store_true", help="skip the cProfile run")
+    ap.add_argument("--one", nargs=2, metavar=("N", "DURATION_S"), help=argparse.SUPPRESS)  # worker mode
+    ap.add_argument("--json", help=argparse.SUPPRESS)
+    ap.add_argument("--profile", help=argparse.SUPPRESS)
+    return ap.parse_args(argv)
+
+
+def _new_result(started: str) -> dict:
+    """bench.json before any run: the commit (+dirty), the host, the load at the start."""
+    import psutil
+
+    from swarmnav.config import load_config
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
+    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO, capture_output=True,
+                           text=True).stdout.strip()
+    return {"started": started, "commit": commit + ("+dirty" if dirty else ""), "config": "configs/scale.toml",
+            "algo": ALGO, "seed": SEED, "density_per_km3": load_config(CONFIG).swarm.density_per_km3,
+            "host": {"cpus": os.cpu_count(), "mem_gb": psutil.virtual_memory().total / 2**30, "python": platform.python_version()},
+            "load1_start": load1(), "inproc": [], "dist": [], "profile": None, "notes": []}
+
+
+def _bench_inproc(res: dict, sizes, out: Path, left, save, quick: bool) -> None:
+    """1. in-process sizes (the largest gets the epochs the budget allows: its row is the point)."""
+    for i, (n, dur) in enumerate(sizes):
+        last = i == len(sizes) - 1
+        if last and len(res["inproc"]) >= 2 and not quick:
+            dur = _largest_duration(res["inproc"], n, dur, left())
+        print(f"[bench] in-process N={n} ({dur:g} s scenario) — load1 {load1()}, {left():.0f} s of budget left", flush=True)
+        r = run_inproc(n, dur, out, timeout=max(60.0, left() - (20.0 if last else 60.0)))
+        res["inproc"].append(r)
+        print(f"[bench]   -> " + (f"failed: {r['error']}" if "error" in r else
+                                 f"step p50 {r['step_ms_p50']:.2f} ms p99 {r['step_ms_p99']:.2f} ms, wall/UAV-epoch "
+                                 f"{r['wall_per_uav_epoch_ms']:.2f} ms, CPU/UAV-epoch {r['cpu_per_uav_epoch_ms']:.2f} ms, "
+                                 f"{r['realtime_factor']:.3f}x real time, peak RSS {r['peak_rss_mb']:.0f} MB, "
+                                 f"load1 {r['load1_after']}"), flush=True)
+        save()
+
+
+def _bench_profiles(res: dict, sizes, out: Path, left, save) -> None:
+    """2. profiles (CPU time) at two sizes: the hot spots of the larger, and what grows with N."""
+    profs = []
+    for n, dur in sizes:
+        if left() < 60:
+            res["notes"].append(f"profile N = {n} skipped: the budget had {left():.0f} s left")
+            break
+        print(f"[bench] profile in-process N={n} ({dur:g} s) — load1 {load1()}", flush=True)
+        pf = out / f"profile-{n}.prof"
+        r = run_inproc(n, dur, out, profile=str(pf), timeout=max(60.0, min(400.0, left() - 30.0)))
+        if "error" in r or not pf.is_file():
+            res["profile"] = {"n": n, "duration_s": dur, "error": r.get("error", "no profile written")}
+            break
+        profs.append((n, pf))
+        res["profile"] = {"n": n, "duration_s": dur, "load1": r.get("load1_after"), "clock": "CPU time",
+                          **profile_summary(pf)}
+        save()
+    if len(profs) >= 2:
+        res["profile_growth"] = profile_growth(profs[0][1], profs[-1][1], profs[0][0], profs[-1][0])
+        save()
+
+
+def _bench_dist(res: dict, sizes, out: Path, left, save) -> None:
+    """3. distributed, each with its in-process twin, while the budget allows."""
+    for n, dur in sizes:
+        # rough need: launch start-up ~0.25 s per process + the run at ~1x, plus the in-process twin
+        need = 40 + 0.6 * n + 1.5 * dur * max(1.0, n / 18)
+        if left() < need:
+            res["dist"].append({"n": n, "duration_s": dur, "skipped": f"time budget ({left():.0f} s left, ~{need:.0f} s needed)"})
+            res["notes"].append(f"distributed N = {n} skipped: the 15-minute budget had {left():.0f} s left")
+            continue
+        print(f"[bench] distributed N={n} ({dur:g} s) + in-process twin — load1 {load1()}, {left():.0f} s left", flush=True)
+        d = run_dist(n, dur, out, timeout=max(60.0, left() - 30.0))
+        res["dist"].append(d)
+        print(f"[bench]   -> launch {_f(d.get('dist_command_wall_s'), '{:.1f}')} s ({_f(d.get('dist_command_rtf'))}x), "
+              f"in-process {_f(d.get('inproc_command_wall_s'), '{:.1f}')} s, ratio {_f(d.get('wall_ratio_dist_over_inproc'))}, "
+              f"load1 {load1()}", flush=True)
+        save()
 
 
 if __name__ == "__main__":
