@@ -37,6 +37,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .geometry import quat_rotate
+
 AXES = ("e", "n", "u")
 
 
@@ -253,13 +255,6 @@ def monte_carlo(seeds, per_seed: dict[str, list], pairs=MC_PAIRS, p: float = 0.9
     return out
 
 
-def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rotate vectors v (M,3) by unit quaternions q (M,4) w,x,y,z (body -> ENU)."""
-    w, u = q[:, :1], q[:, 1:]
-    c = np.cross(u, v)
-    return v + 2.0 * w * c + 2.0 * np.cross(u, c)
-
-
 def range_nis_values(t_epochs, uavs, pos, vel, cov, quat, ranges, tags: dict, anchors: dict,
                      thr=None) -> tuple[np.ndarray, np.ndarray]:
     """NIS of each two-way range against the estimate the swarm had *before* it (no truth needed).
@@ -313,7 +308,7 @@ def range_nis_values(t_epochs, uavs, pos, vel, cov, quat, ranges, tags: dict, an
         if len(arm):
             q = quat[ii[arm], jj[arm]]
             qn = np.linalg.norm(q, axis=1, keepdims=True)
-            p[m[arm]] += _rotate(q / qn, lev[m[arm]]) - lev[m[arm]]  # NaN without attitude: row dropped
+            p[m[arm]] += quat_rotate(q / qn, lev[m[arm]]) - lev[m[arm]]  # NaN without attitude: row dropped
         ends.append((p, m, ii, jj))
     (pa, ma, ia, ja), (pb, mb, ib, jb) = ends
     d = pa - pb
