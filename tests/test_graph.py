@@ -160,7 +160,7 @@ def test_fixed_lag_matches_batch_solve():
 def test_atvfg_nees_on_smoke():
     """3-D position NEES of atvfg over three seeds of smoke, two-sided.
 
-    The reported covariance is the covariance of the reported position (graph._round_cov), so the
+    The reported covariance is the covariance of the reported position (graph._commit: the sandwich of rounds.normal_equations), so the
     NEES should follow χ²(3): we hold the share of UAV-epochs inside its two-sided 95 % band
     [0.216, 9.35] to ≥ 0.8 (samples are correlated in time, so the share scatters more than
     binomially; 0.88 measured) and the mean to [1.5, 6] (a factor 2 either side of 3; 3.6 measured).
@@ -254,15 +254,14 @@ def test_anchor_range_time_shift_moves_anchor_by_velocity():
     ds = simulate(sc, 1)
     u = ds.meta.uav_ids()[0]
     est = InsEstimator(u, ds.meta, _settings(sc), initial_states(ds, 1)[u])
-    est.anchors = {100: np.array([10.0, 0.0, 0.0])}
-    est.tags = {0: np.zeros(3)}
-    est._v_pred = np.array([2.0, 0.0, 0.0])
+    est.own.anchors = {100: np.array([10.0, 0.0, 0.0])}
+    est.own.tags = {0: np.zeros(3)}
     from swarmnav.dataset import EpochInput
     inp = EpochInput(u, 1, 1.0, 0.9, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)),
                      range_t=np.array([0.95]), range_other=np.array([100]), range_tag_self=np.array([0]),
                      range_tag_other=np.array([0]), range_m=np.array([10.0]), range_sigma=np.array([0.1]))
     g = gtsam.NonlinearFactorGraph()
-    est._add_anchor_ranges(g, X(0), inp)
+    est.own.add_anchor_ranges(g, X(0), inp, np.array([2.0, 0.0, 0.0]))
     v = gtsam.Values()
     v.insert(X(0), gtsam.Pose3(gtsam.Rot3(), np.array([0.1, 0.0, 0.0])))  # p(t); at t_r it was 0.0
     assert g.error(v) < 1e-12  # |p(t) − (anchor + v·0.05)| = |0.1 − 10.1| = 10 = measured
@@ -270,9 +269,9 @@ def test_anchor_range_time_shift_moves_anchor_by_velocity():
 
 def test_neighbour_bearing_turned_around_is_the_reverse_direction():
     """A neighbour j's az/el of this node i is used by i as an observation of j at (az + pi, -el)
-    (graph._round_cache): check the identity on random geometry, through the pole-free range."""
+    (graph_links.round_cache): check the identity on random geometry, through the pole-free range."""
     from swarmnav.estimators.factors import wrap_angle
-    from swarmnav.geometry import azimuth_elevation
+    from swarmnav.models.bearing import azimuth_elevation
 
     rng = np.random.default_rng(3)
     for _ in range(200):
@@ -311,7 +310,7 @@ def test_drag_factor_residual_and_jacobians():
 
     est, inp, f = _drag_setup()
     g = gtsam.NonlinearFactorGraph()
-    m0 = est._drag_factor(g, 1, inp)
+    m0 = est.own.add_drag(g, (X(1), V(1), B(1)), inp, est._at_rest)
     assert m0 is not None and g.size() == 2  # prior on M (first call) + the drag factor
     fac = g.at(1)
     rng = np.random.default_rng(3)
@@ -401,7 +400,8 @@ def test_own_bearings_are_wrapped_and_valid_for_the_state_frame():
     inp = EpochInput(u, 1, 1.0, 0.0, np.zeros(1), np.zeros((1, 3)), np.zeros((1, 3)),
                      rel_target=np.array([2, 2, 3, 4]), rel_az=np.array([4.0, 0.1, 0.2, 0.3]),
                      rel_el=np.array([0.1, 0.2, 1.7, -0.3]), rel_sigma=np.array([0.01, 0.01, 0.01, 0.0]))
-    b = est._own_bearings(inp)
+    from swarmnav.estimators.graph_links import own_bearings
+    b = own_bearings(inp, u, est.rel_sigma)
     assert sorted(b) == [2, 4]
     assert b[2][0] == pytest.approx(4.0 - 2 * np.pi) and b[2][1] == 0.1  # first row of target 2
     assert b[4][2] == est.rel_sigma  # sigma 0 in the data -> the nominal sigma
@@ -564,20 +564,20 @@ def test_relinked_commit_exact_and_bounded(noiseless, algo):
         n = nodes[uavs[0]]
         fs = n.smoother.getFactors()
         counts.append(sum(1 for i in range(fs.size()) if fs.exists(i)))
-        live = [h for h in n._rl if h["fidx"] is not None]
+        live = [h for h in n.relinker.records if h.fidx is not None]
         assert n.relink == 3 and len(live) <= n.relink
         for h in live:
-            f = fs.at(h["fidx"])
-            assert isinstance(f, gtsam.GPSFactor) and list(f.keys()) == [X(h["n"])]
+            f = fs.at(h.fidx)
+            assert isinstance(f, gtsam.GPSFactor) and list(f.keys()) == [X(h.n)]
             # one relinked factor per pose (+ the GNSS fix): re-fusing replaced the earlier ones
             same = [i for i in range(fs.size()) if fs.exists(i) and isinstance(fs.at(i), gtsam.GPSFactor)
-                    and list(fs.at(i).keys()) == [X(h["n"])]]
-            assert len(same) <= 2, (k, h["k"], len(same))
+                    and list(fs.at(i).keys()) == [X(h.n)]]
+            assert len(same) <= 2, (k, h.k, len(same))
     rmse = float(np.sqrt(np.mean(np.sum(np.array(err) ** 2, 1))))
     assert rmse < 0.05, rmse
     K = len(counts)
     assert max(counts[K // 2:]) <= max(counts[:K // 2]) + 5, counts  # bounded by the fixed lag
-    traj = nodes[uavs[0]]._peer_traj[uavs[1]]  # as received in another UAV's last round-0 state
+    traj = nodes[uavs[0]].relinker.peer_traj[uavs[1]]  # as received in another UAV's last round-0 state
     assert sorted(traj) == [K - 3, K - 2, K - 1], sorted(traj)
 
 
@@ -620,7 +620,7 @@ def test_atvfg_paper_is_the_published_method(noiseless):
 
 
 def _round_links(rng, n=5, tdoa=True):
-    """A random link set in the layout GraphEstimator._prepare_links builds (the rounds' input)."""
+    """A random link set in the layout rounds.prepare_links builds (the rounds' input; as the fields of rounds.Links)."""
     p0 = rng.normal(0, 30, 3)
     pj = p0 + rng.normal(0, 60, (n, 3))
     A = rng.normal(0, 0.5, (n, 3, 3))
@@ -670,21 +670,18 @@ def _frozen_cost(p, p0, p_loc, info, L):
 
 @pytest.mark.parametrize("seed", range(4))
 def test_round_normal_equations_match_finite_differences(seed):
-    """The Jacobians the rounds use (GraphEstimator._normal_equations, an inline vectorised copy of
-    the range / az-el / tdoa models) against central finite differences of the same cost written
+    """The Jacobians the rounds use (rounds.normal_equations: the vectorised range / az-el / tdoa
+    models of swarmnav.models) against central finite differences of the same cost written
     with factors.py's tested models: the gradient g = −∇cost, and the Gauss-Newton Hessian
     H = Σ JᵀWJ + Λ from finite-difference Jacobians of each whitened residual."""
-    from types import SimpleNamespace
-
-    from swarmnav.estimators.graph import GraphEstimator
+    from swarmnav.estimators.rounds import Links, normal_equations
 
     rng = np.random.default_rng(seed)
     p0, L = _round_links(rng)
     A = rng.normal(0, 1, (3, 3))
     info = A @ A.T + np.eye(3)
     p_loc = p0 + rng.normal(0, 2, 3)
-    node = SimpleNamespace(_info=info, p_loc=p_loc, _L=L)
-    H, g = GraphEstimator._normal_equations(node, p0, L=L)
+    H, g = normal_equations(Links(**L), p0, info, p_loc)
     h = 1e-5
     num_g = np.array([(_frozen_cost(p0 + h * e, p0, p_loc, info, L) - _frozen_cost(p0 - h * e, p0, p_loc, info, L)) / (2 * h)
                       for e in np.eye(3)])
@@ -695,7 +692,7 @@ def test_round_normal_equations_match_finite_differences(seed):
                          for e in np.eye(3)])
     np.testing.assert_allclose(H, J.T @ J + info, rtol=1e-5, atol=1e-6 * np.abs(H).max())
     # coop_only: the same without the prior
-    Hc, gc = GraphEstimator._normal_equations(node, p0, coop_only=True, L=L)
+    Hc, gc = normal_equations(Links(**L), p0)
     np.testing.assert_allclose(Hc, H - info, atol=1e-9 * np.abs(H).max())
     np.testing.assert_allclose(gc, g - info @ (p_loc - p0), atol=1e-9 * max(1.0, np.abs(g).max()))
 
@@ -705,21 +702,18 @@ def test_round_sandwich_covariance(seed):
     """The covariance reported with the round solution: H⁻¹MH⁻¹ with M = Σ JᵀW·R·WJ + Λ_loc.
     With unit link weights and the error model equal to the weights (R = W⁻¹) it is H⁻¹; else the covariance
     of the linearised weighted least-squares step, checked by Monte Carlo on the linear model."""
-    from types import SimpleNamespace
-
-    from swarmnav.estimators.graph import GraphEstimator
+    from swarmnav.estimators.rounds import Links, normal_equations
 
     rng = np.random.default_rng(seed)
     p0, L = _round_links(rng, n=4, tdoa=False)
     info = np.diag(rng.uniform(0.05, 0.5, 3))
-    node = SimpleNamespace(_info=info, p_loc=p0, _L=L)
     # unit link weights and an error model equal to the weights: M = H
     Lu = {"rng": L["rng"][:2] + (np.ones(4),) + L["rng"][3:], "azel": L["azel"][:2] + (np.ones(4),) + L["azel"][3:]}
-    H, _, M = GraphEstimator._normal_equations(node, p0, L=Lu, L_true=Lu)
+    H, _, M = normal_equations(Links(**Lu), p0, info, p0, L_true=Links(**Lu))
     np.testing.assert_allclose(M, H, rtol=1e-10, atol=1e-12 * np.abs(H).max())
     # weights with the neighbours' covariance x 0.5, errors with x 1 (as the rounds and the report)
     Ls = {"rng": L["rng"][:1] + (L["rng"][1] * 0.5,) + L["rng"][2:], "azel": L["azel"][:1] + (L["azel"][1] * 0.5,) + L["azel"][2:]}
-    H, _, M = GraphEstimator._normal_equations(node, p0, L=Ls, L_true=L)
+    H, _, M = normal_equations(Links(**Ls), p0, info, p0, L_true=Links(**L))
     cov = np.linalg.solve(H, np.linalg.solve(H, M).T)
     # linear model: the step is H⁻¹ g, g = Λ e_loc + Σ Jᵀ W (noise + J_nb e_nb); draw the errors
     pj, Pj, w, lev, sig2, _ = L["rng"]

@@ -18,15 +18,21 @@ EST = REPO / "shared" / "swarmnav" / "estimators"
 NOT_TUNING = {"rounds", "convergence_m", "fixed_lag_s", "delta_l_file", "delta_l_fallback_sigmas", "residual_window_epochs",
               "peer_timeout_s", "graph", "delta_l_m", "delta_l_uwb_sigma_m"}
 # defaults written as names in the estimators, resolved here
+TYPED = object()  # a read through the typed model: its default is the model's
 NAMED = {"det.DEFAULT_CEIL_FACTOR": S.DEFAULT_CEIL_FACTOR, "det.DEFAULT_FLOOR_FACTOR": S.DEFAULT_FLOOR_FACTOR,
          "DRAG_SIGMA_SCALE": S.DRAG_SIGMA_SCALE}
 
 
 def _reads() -> dict[str, list[tuple[str, int, object]]]:
-    """Every ``s.get("key", default)`` / ``settings.get(...)`` in the estimators: key -> [(file, line, default)]."""
+    """Every ``s.get("key", default)`` / ``settings.get(...)`` in the estimators: key -> [(file, line,
+    default)]; a typed read ``t.key`` of settings.tuning()'s model (the per-UAV graph) counts with the
+    model's default (``TYPED``)."""
     out: dict[str, list] = {}
     for p in sorted(EST.glob("*.py")):
         for n in ast.walk(ast.parse(p.read_text())):
+            if (isinstance(n, ast.Attribute) and ast.unparse(n.value) in ("t", "self.tuning")
+                    and n.attr in S.EstimatorTuning.model_fields):
+                out.setdefault(n.attr, []).append((p.name, n.lineno, TYPED))
             if (isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "get" and n.args
                     and isinstance(n.args[0], ast.Constant) and isinstance(n.args[0].value, str)
                     and ast.unparse(n.func.value) in ("s", "settings", "self.settings")):
@@ -51,7 +57,7 @@ def test_every_key_the_estimators_read_is_typed_with_the_same_default():
             continue
         want = fields[k].get_default(call_default_factory=True)
         for file, line, d in places:
-            if isinstance(d, str) and d.startswith("s.get("):
+            if d is TYPED or (isinstance(d, str) and d.startswith("s.get(")):
                 continue  # a default derived from another key
             got = tuple(d) if isinstance(d, (list, tuple)) else d
             exp = tuple(want) if isinstance(want, (list, tuple)) else want
@@ -60,6 +66,9 @@ def test_every_key_the_estimators_read_is_typed_with_the_same_default():
 
 def test_named_defaults_equal_the_estimators_constants():
     from swarmnav.estimators import detection, factors
+    from swarmnav.models import rotor_drag
+
+    assert rotor_drag.DRAG_SIGMA_SCALE == factors.DRAG_SIGMA_SCALE
 
     assert (detection.DEFAULT_FLOOR_FACTOR, detection.DEFAULT_CEIL_FACTOR, factors.DRAG_SIGMA_SCALE) == \
         (S.DEFAULT_FLOOR_FACTOR, S.DEFAULT_CEIL_FACTOR, S.DRAG_SIGMA_SCALE)
@@ -94,3 +103,12 @@ def test_shipped_configs_validate():
 def test_docs_settings_md_is_generated_from_the_model():
     assert (REPO / "docs" / "settings.md").read_text() == S.settings_table_markdown(), \
         "docs/settings.md is stale: regenerate it with python -c 'from swarmnav.estimators.settings import ...'"
+
+
+def test_the_graph_estimators_read_the_typed_model():
+    """settings.tuning: the [estimation.graph] table merged over the top level, validated, the
+    model's defaults for the rest; non-tuning keys of the [estimation] table are ignored."""
+    t = S.tuning({"rounds": 3, "commit_weight": 0.5, "graph": {"commit_weight": 0.2, "use_tdoa": False}})
+    assert (t.commit_weight, t.use_tdoa, t.report) == (0.2, False, "round")
+    with pytest.raises(Exception, match="commit_weight"):
+        S.tuning({"graph": {"commit_weight": 2.0}})

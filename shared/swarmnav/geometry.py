@@ -114,11 +114,3 @@ def yaw_of(q: np.ndarray) -> float:
 def skew(t: np.ndarray) -> np.ndarray:
     """[t]×: the 3×3 matrix of the cross product t × · (t a 3-vector)."""
     return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-
-
-def azimuth_elevation(p_obs: np.ndarray, p_tgt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Paper eq. 27 in ENU: azimuth from East counter-clockwise, elevation above horizontal (rad)."""
-    d = np.asarray(p_tgt, float) - np.asarray(p_obs, float)
-    az = np.arctan2(d[..., 1], d[..., 0])
-    el = np.arctan2(d[..., 2], np.hypot(d[..., 0], d[..., 1]))
-    return az, el

@@ -201,6 +201,10 @@ class CentralEstimator(SwarmEstimator):
         self.dropped = 0  # ranges removed by the oracle so far
         self.nav: dict[int, gtsam.NavState] = {}
         self.bias: dict[int, gtsam.imuBias.ConstantBias] = {}
+        self._pending = self._initial_priors(inits)
+
+    def _initial_priors(self, inits: dict[int, InitialState]):
+        """(graph, values, timestamps) of every UAV's prior on X, V, B at epoch 0; sets nav and bias."""
         g, vals, ts = gtsam.NonlinearFactorGraph(), gtsam.Values(), {}
         for u in self.uavs:
             ini = inits[u]
@@ -213,7 +217,7 @@ class CentralEstimator(SwarmEstimator):
             C[3:6, 3:6] = Rm.T @ np.diag(np.asarray(ini.pos_sigma, float) ** 2) @ Rm
             g.add(gtsam.PriorFactorPose3(X(u, 0), pose, gtsam.noiseModel.Gaussian.Covariance(C)))
             g.add(gtsam.PriorFactorVector(V(u, 0), np.asarray(ini.vel, float), gtsam.noiseModel.Isotropic.Sigma(3, max(ini.vel_sigma, 1e-3))))
-            imu = meta.node(u).imu
+            imu = self.meta.node(u).imu
             bs = np.r_[np.full(3, max(imu.accel_bias_sigma, 1e-5)), np.full(3, max(imu.gyro_bias_sigma, 1e-7))]
             g.add(gtsam.PriorFactorConstantBias(B(u, 0), gtsam.imuBias.ConstantBias(), gtsam.noiseModel.Diagonal.Sigmas(bs)))
             vals.insert(X(u, 0), pose)
@@ -223,7 +227,7 @@ class CentralEstimator(SwarmEstimator):
                 ts[key] = ini.t
             self.nav[u] = gtsam.NavState(pose, np.asarray(ini.vel, float))
             self.bias[u] = gtsam.imuBias.ConstantBias()
-        self._pending = (g, vals, ts)
+        return g, vals, ts
 
     def step(self, inputs: dict[int, EpochInput], range_labels: dict[str, np.ndarray],
              tdoa_labels: dict[str, np.ndarray] | None = None) -> dict[int, NodeEstimate]:

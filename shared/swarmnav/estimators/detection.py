@@ -81,6 +81,18 @@ def fallback_delta_l(uwb_sigma_m: float, fallback_sigmas: float) -> float:
     return float(fallback_sigmas) * float(uwb_sigma_m)
 
 
+def node_delta_l(settings: dict, uwb_sigma_m: float, tolerance: float) -> float:
+    """Δl (m) a node uses: the trained ``delta_l_m`` of the settings if it applies, else the
+    fallback (``delta_l_fallback_sigmas`` × σ). A trained Δl is a statistic of residuals at the
+    training data's ranging σ (``delta_l_uwb_sigma_m``); on data whose σ differs by more than
+    ``tolerance`` (relative, ``delta_l_sigma_tolerance``) it does not apply (MILUV: trained at
+    0.10 m, recording 0.19 m -> Δl 0.557 m instead of 0.269 m)."""
+    dl, dl_sig = settings.get("delta_l_m"), settings.get("delta_l_uwb_sigma_m")
+    if dl and dl_sig and abs(float(dl_sig) / uwb_sigma_m - 1.0) > float(tolerance):
+        dl = None
+    return float(dl) if dl else fallback_delta_l(uwb_sigma_m, settings.get("delta_l_fallback_sigmas", 3.0))
+
+
 def residual_matrix(positions: Mapping[int, np.ndarray], ranges: Mapping[tuple[int, int], float]
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Residuals of every ranged pair whose both ends have a position.

@@ -284,6 +284,16 @@ class FkfEstimator(NodeEstimator):
             Rv = Rv + (n_nb - 1) * q
             for m in range(len(links)):
                 links[m][2] += (n_nb - 1) * q[m]
+        keep, flags, Rfull = self._isolate(H, r, Rv, links, x_lin, Pu)
+        if not keep.any():
+            return None, flags
+        Hk, rk, Rk = H[keep], r[keep], Rfull[np.ix_(keep, keep)]
+        Hw = np.linalg.solve(Rk, Hk)  # R⁻¹H
+        return (Hk.T @ Hw, Hw.T @ rk), flags
+
+    def _isolate(self, H: np.ndarray, r: np.ndarray, Rv: np.ndarray, links: list, x_lin: np.ndarray, Pu: np.ndarray):
+        """χ² isolation of the UWB rows (per measurement, then the sub-filter's NIS): (rows kept,
+        LinkInfo per row, the rows' noise covariance)."""
         keep = np.ones(len(r), bool)
         anchor = np.array([lk[0] in self.anchors for lk in links])
         # lock-out guard: anchor ranges exempt from both tests while the failure record is at the limit
@@ -309,11 +319,7 @@ class FkfEstimator(NodeEstimator):
         for m, (other, innov, s) in enumerate(links):
             flags.append(LinkInfo(other, LinkClass.H2_NORMAL if keep[m] else LinkClass.H0_FAILED,
                                   abs(innov), 1.0 if keep[m] else 0.0))
-        if not keep.any():
-            return None, flags
-        Hk, rk, Rk = H[keep], r[keep], Rfull[np.ix_(keep, keep)]
-        Hw = np.linalg.solve(Rk, Hk)  # R⁻¹H
-        return (Hk.T @ Hw, Hw.T @ rk), flags
+        return keep, flags, Rfull
 
     def _fuse(self, g: tuple[np.ndarray, np.ndarray] | None,
               u: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:

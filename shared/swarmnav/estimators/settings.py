@@ -3,9 +3,9 @@
 One model, :class:`EstimatorTuning`, lists every tuning key the estimators read (graph.py: atvfg,
 atvfg_paper, fg, ins; central.py; fkf.py; imu.py's rest detector), with its default, unit and
 meaning. The config loader validates ``[estimation.graph]`` against it (``extra="forbid"``), so a
-typo fails naming the key instead of being silently ignored; tests/test_settings.py holds the
-estimators' own reads (and their defaults) to this list. (The estimators still read their settings
-dict with the same defaults; reading this model instead is the next step.)
+typo fails naming the key instead of being silently ignored. The per-UAV graph estimators read
+:func:`tuning` (this model, the defaults in one place); central.py, fkf.py and imu.py still read
+their settings dict with the same defaults, which tests/test_settings.py holds equal to this list.
 
 Units: metres (m), seconds (s), m/s, radians unless a name says otherwise; "factor" = multiple of
 the quantity named; "scale" = multiplies a σ.
@@ -101,6 +101,16 @@ class EstimatorTuning(BaseModel):
     fkf_neighbour_fusion: Literal["ci", "independent"] = Field("ci", description="neighbour fusion: covariance intersection or as independent")
     fkf_neighbour_corr: Literal["split", "none"] = Field("split", description="correlation model of neighbour estimates")
     fkf_anchor_max_reject: int = Field(3, ge=0, description="consecutive anchor rejections before reset")
+
+
+def tuning(settings: dict | None) -> EstimatorTuning:
+    """The typed tuning of an estimator's settings dict: its tuning keys (the top level with the
+    ``[estimation.graph]`` table, ``settings["graph"]``, merged over it) validated, every other
+    field at its default. Keys that are not tuning keys (the ``[estimation]`` table's own: rounds,
+    fixed_lag_s, delta_l_m, ...) are left to their readers."""
+    s = dict(settings or {})
+    s.update(s.get("graph") or {})
+    return EstimatorTuning.model_validate({k: v for k, v in s.items() if k in EstimatorTuning.model_fields})
 
 
 def validate_tuning(table: dict | None) -> dict:

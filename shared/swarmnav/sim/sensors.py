@@ -12,7 +12,8 @@ import numpy as np
 
 from ..config import GnssSpec, ImuSpec, Scenario
 from ..dataset import FaultKind, ImuNoise
-from ..geometry import azimuth_elevation
+from ..models.bearing import azimuth_elevation
+from ..models.uwb_range import distance
 from .earth import DPH, DPHPSH, DPSH, UG, UGPSHZ, UGPSSH
 
 EPS_T = 1e-9
@@ -226,6 +227,71 @@ def realistic_uwb_errors(fm, sigma: float, t: np.ndarray, t0: float, P: int, n: 
     return core, mask, bias
 
 
+def interference_states(fi, t: np.ndarray, epoch_dt: float, P: int, rng_intf: np.random.Generator):
+    """Fault 1, interference: per link a two-state Markov chain over the epochs t (K,) (stationary
+    start, mean dwell in the interfered state ``fi.mean_dwell_s``, fraction ``fi.time_fraction``),
+    one bias U(``fi.bias_m``) per episode. Returns the (K, P) interfered mask and bias (m)."""
+    K = len(t)
+    dtk = np.diff(t, prepend=t[0] - epoch_dt)
+    p_exit_base = 1.0 / fi.mean_dwell_s
+    frac = fi.time_fraction
+    u_tr = rng_intf.random((K, P))
+    b_draw = rng_intf.uniform(fi.bias_m[0], fi.bias_m[1], (K, P))
+    state = rng_intf.random(P) < frac
+    cur = b_draw[0].copy()
+    intf = np.zeros((K, P), bool)
+    bias_i = np.zeros((K, P))
+    for k in range(K):
+        if k > 0:
+            p_exit = min(1.0, dtk[k] * p_exit_base)
+            p_enter = min(1.0, p_exit * frac / (1.0 - frac))
+            enter = ~state & (u_tr[k] < p_enter)
+            leave = state & (u_tr[k] < p_exit)
+            state = (state | enter) & ~leave
+            cur = np.where(enter, b_draw[k], cur)
+        intf[k] = state
+        bias_i[k] = cur
+    return intf, bias_i
+
+
+def _add_drift(drifts, t, ia, ib, err, kind):
+    """Fault 4, drift: + rate·(t − start) on the link for start <= t <= end (in place)."""
+    for dr in drifts:
+        a, b = sorted(dr.link)
+        j = np.flatnonzero((ia == a - 1) & (ib == b - 1))[0]
+        w = in_window(t, dr.start_s, dr.end_s)
+        err[:, j] += np.where(w, dr.rate_mps * (t - dr.start_s), 0.0)
+        kind[w, j] = FaultKind.DRIFT
+
+
+def _add_module_failures(failures, t, ia, ib, rng_fail, err, kind):
+    """Fault 2, module failure: + U(error_m), a new draw per measurement, on every link of the UAV
+    in the window (in place)."""
+    K, P = err.shape
+    for mf in failures:
+        w = in_window(t, mf.start_s, mf.end_s)[:, None] & ((ia == mf.uav - 1) | (ib == mf.uav - 1))[None, :]
+        e2 = rng_fail.uniform(mf.error_m[0], mf.error_m[1], (K, P))
+        err += np.where(w, e2, 0.0)
+        kind[w] = FaultKind.FAILURE
+
+
+def _apply_stuck(stuck, t, ia, ib, meas, nominal, err, kind):
+    """Fault 3, stuck: every link of the UAV repeats its (fully faulted) measurement at the first
+    epoch >= start_s; err = repeated value − nominal. Returns (meas, err); ``kind`` in place."""
+    for st in stuck:
+        w_t = in_window(t, st.start_s, st.end_s)
+        if not w_t.any():
+            continue
+        k0 = int(np.flatnonzero(w_t)[0])
+        links = (ia == st.uav - 1) | (ib == st.uav - 1)
+        w = w_t[:, None] & links[None, :]
+        frozen = np.broadcast_to(meas[k0], meas.shape)
+        meas = np.where(w, frozen, meas)
+        err = np.where(w, meas - nominal, err)
+        kind[w] = FaultKind.STUCK
+    return meas, err
+
+
 def simulate_uwb(sc: Scenario, t: np.ndarray, pos: np.ndarray, rng_bias, rng_noise, rng_loss,
                  rng_intf, rng_fail, rng_tail=None, rng_nlos=None, t0: float = 0.0) -> UwbResult:
     """Two-way ranges at epoch times t (K,) from ENU positions pos (K,U,3).
@@ -252,7 +318,7 @@ def simulate_uwb(sc: Scenario, t: np.ndarray, pos: np.ndarray, rng_bias, rng_noi
     K, U = pos.shape[0], pos.shape[1]
     ia, ib = pairs(U)
     P = len(ia)
-    d = np.linalg.norm(pos[:, ia] - pos[:, ib], axis=-1)
+    d = distance(pos[:, ia], pos[:, ib])  # models/uwb_range.py: h
     bias = rng_bias.normal(0.0, uw.link_bias_sigma_m, P)
     n = rng_noise.normal(0.0, 1.0, (K, P))
     fm = sc.faults.uwb
@@ -270,55 +336,12 @@ def simulate_uwb(sc: Scenario, t: np.ndarray, pos: np.ndarray, rng_bias, rng_noi
 
     fi = sc.faults.interference
     if fi.enabled and fi.time_fraction > 0 and not realistic:
-        dtk = np.diff(t, prepend=t[0] - sc.scenario.epoch_dt_s)
-        p_exit_base = 1.0 / fi.mean_dwell_s
-        frac = fi.time_fraction
-        u_tr = rng_intf.random((K, P))
-        b_draw = rng_intf.uniform(fi.bias_m[0], fi.bias_m[1], (K, P))
-        state = rng_intf.random(P) < frac
-        cur = b_draw[0].copy()
-        bias_i = np.zeros((K, P))
-        for k in range(K):
-            if k > 0:
-                p_exit = min(1.0, dtk[k] * p_exit_base)
-                p_enter = min(1.0, p_exit * frac / (1.0 - frac))
-                enter = ~state & (u_tr[k] < p_enter)
-                leave = state & (u_tr[k] < p_exit)
-                state = (state | enter) & ~leave
-                cur = np.where(enter, b_draw[k], cur)
-            intf[k] = state
-            bias_i[k] = cur
-        e1 = np.where(intf, bias_i + (fi.noise_scale - 1.0) * uw.sigma_m * n, 0.0)
-        err += e1
+        intf, bias_i = interference_states(fi, t, sc.scenario.epoch_dt_s, P, rng_intf)
+        err += np.where(intf, bias_i + (fi.noise_scale - 1.0) * uw.sigma_m * n, 0.0)
         kind[intf] = FaultKind.INTERFERENCE
-
-    for dr in sc.faults.drift:
-        a, b = sorted(dr.link)
-        j = np.flatnonzero((ia == a - 1) & (ib == b - 1))[0]
-        w = in_window(t, dr.start_s, dr.end_s)
-        e4 = np.where(w, dr.rate_mps * (t - dr.start_s), 0.0)
-        err[:, j] += e4
-        kind[w, j] = FaultKind.DRIFT
-
-    for mf in sc.faults.module_failure:
-        w = in_window(t, mf.start_s, mf.end_s)[:, None] & ((ia == mf.uav - 1) | (ib == mf.uav - 1))[None, :]
-        e2 = rng_fail.uniform(mf.error_m[0], mf.error_m[1], (K, P))
-        err += np.where(w, e2, 0.0)
-        kind[w] = FaultKind.FAILURE
-
-    meas = nominal + err
-    for st in sc.faults.stuck:
-        w_t = in_window(t, st.start_s, st.end_s)
-        if not w_t.any():
-            continue
-        k0 = int(np.flatnonzero(w_t)[0])
-        links = (ia == st.uav - 1) | (ib == st.uav - 1)
-        w = w_t[:, None] & links[None, :]
-        frozen = np.broadcast_to(meas[k0], meas.shape)
-        meas = np.where(w, frozen, meas)
-        err = np.where(w, meas - nominal, err)
-        kind[w] = FaultKind.STUCK
-
+    _add_drift(sc.faults.drift, t, ia, ib, err, kind)
+    _add_module_failures(sc.faults.module_failure, t, ia, ib, rng_fail, err, kind)
+    meas, err = _apply_stuck(sc.faults.stuck, t, ia, ib, nominal + err, nominal, err, kind)
     keep = (d <= uw.max_range_m) & (rng_loss.random((K, P)) >= uw.packet_loss)
     return UwbResult(range=meas, true=d, kind=kind, err=err, keep=keep, link_bias=bias, interfered=intf)
 

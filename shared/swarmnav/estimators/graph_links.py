@@ -1,0 +1,190 @@
+"""The per-UAV graph's cooperative links of an epoch: what a node measured of its neighbours (ranges,
+az/el: broadcast in its round-0 state), where a neighbour's tag is, and the epoch's
+:class:`~swarmnav.estimators.rounds.RoundCache` the rounds solve on.
+
+Choices: range timestamps inside the epoch are treated as at the epoch time; the node's own tag
+lever arm is applied with its current attitude, a neighbour's with its broadcast attitude
+(``peer_levers``); an az/el observation is a separate sensor from UWB ranging (``azel_weight``).
+The neighbours' az/el observations *of this node* enter turned around: the direction j -> i at
+(az, el) is i -> j at (az + π, −el) (``reverse_azel``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from . import detection as det
+from ..dataset import EpochInput
+from ..models.base import wrap_angle
+from .base import NodeState
+from .rounds import RoundCache, tdoa_residuals
+
+# the per-UAV graph estimator (graph.GraphEstimator) whose epoch state these functions read
+GraphEstimator = Any
+
+
+def rot3(q: np.ndarray) -> gtsam.Rot3:
+    """gtsam rotation of a (w, x, y, z) quaternion."""
+    return gtsam.Rot3.Quaternion(float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+
+
+def detect_links(node: GraphEstimator, c: RoundCache, P: np.ndarray):
+    """atvfg's double-threshold test on the round's residual matrix (positions P in ``c.nodes``
+    order): (weight per ranged neighbour, (residual m, class) per own link, Δh m, the residuals);
+    without detection every weight is 1 and Δh and the residuals are None."""
+    weights, res_own = {o: 1.0 for o in c.nb}, {}
+    if not (node.detect and c.nb):
+        return weights, res_own, None, None
+    res = c.pairs.residuals(P)
+    if c.rng_has_lever:
+        # own links: residual between the two tags (own lever arm with the own attitude, the
+        # neighbour's with its broadcast one); other pairs stay origin-to-origin (no tag ids)
+        res = res.copy()
+        me = P[c.idx[node.uav]]
+        for i, o in zip(c.mine, c.mine_other):
+            m = c.rng_owner == o
+            if m.any():
+                d = me + c.rng_lever[m] - P[c.idx[o]]
+                res[i] = abs(float(np.mean(c.rng_z[m] - np.linalg.norm(d, axis=1))))
+    dh, cls, w = det.detect(res, node.delta_l, node.window, node.floor_factor, node.kmeans_backend, node.ceil_factor,
+                            node.cap_h1)
+    for i, o in zip(c.mine, c.mine_other):
+        if o in weights:
+            weights[o] = float(w[i])
+            res_own[o] = (float(res[i]), int(cls[i]))
+    return weights, res_own, dh, res
+
+
+def tdoa_weights(node: GraphEstimator, c: RoundCache, P: np.ndarray) -> np.ndarray:
+    """Weights of the cooperative tdoa links: 1 (Gaussian) by default; with ``tdoa_detection``
+    (atvfg only) the double-threshold test on each link's residual at the round's positions,
+    with Δl and the Δh of the ranges (this epoch's, or from the residual window) — measured
+    worse on MILUV (docs/miluv.md "Fifth pass"), off by default."""
+    w = np.ones(len(c.tdoa))
+    if not (node.detect and node.tdoa_detection and c.tdoa):
+        return w
+    res = tdoa_residuals(c, P, P[c.idx[node.uav]], normalise=False)
+    dh = node.delta_h
+    if dh is None:
+        dh = det.upper_threshold(node.window.values(np.zeros(0)), node.delta_l, node.floor_factor,
+                                 node.kmeans_backend, node.ceil_factor)
+    return det.classify_and_weigh(res, node.delta_l, dh, node.cap_h1)[1]
+
+
+def own_ranges(inp: EpochInput, uav: int, uavs: set[int]) -> tuple[dict[int, float], dict[int, list[int]]]:
+    """Inter-UAV ranges node ``uav`` took part in: (other UAV -> mean range m, other UAV -> rows)."""
+    rows: dict[int, list[int]] = {}
+    for i, o in enumerate(inp.range_other):
+        o = int(o)
+        if o in uavs and o != uav and np.isfinite(inp.range_m[i]) and inp.range_m[i] > 0:
+            rows.setdefault(o, []).append(i)
+    return {o: float(np.mean(inp.range_m[r])) for o, r in sorted(rows.items())}, rows
+
+
+def own_bearings(inp: EpochInput, uav: int, rel_sigma: float) -> dict[int, tuple[float, float, float]]:
+    """This epoch's az/el observations to other UAVs, one per target (the first), to broadcast:
+    target -> (azimuth wrapped into [−π, π] (the state frame's range), elevation, σ) rad; an
+    elevation beyond ±π/2 is not a direction and is not broadcast."""
+    out: dict[int, tuple[float, float, float]] = {}
+    for i, o in enumerate(inp.rel_target):
+        el = float(inp.rel_el[i])
+        if int(o) != uav and int(o) not in out and abs(el) <= np.pi / 2:
+            sg = float(inp.rel_sigma[i]) if inp.rel_sigma[i] > 0 else float(rel_sigma)
+            out[int(o)] = (float(wrap_angle(float(inp.rel_az[i]))), el, sg)
+    return out
+
+
+def peer_lever(node: GraphEstimator, peers: dict[int, NodeState], other: int, tag: int) -> np.ndarray:
+    """ENU offset of a neighbour's tag from its broadcast position: R(q_peer)·lever (zero when
+    ``peer_levers`` is off, the neighbour sends no attitude or the tag has no lever arm)."""
+    q = peers[other].quat
+    lev = node.tag_levers.get(other, {}).get(int(tag))
+    if not node.peer_levers or q is None or lev is None or not np.any(lev):
+        return np.zeros(3)
+    return rot3(q).matrix() @ lev
+
+
+def round_cache(node: GraphEstimator, peers: dict[int, NodeState]) -> RoundCache:
+    """The epoch's link structure for the live ``peers`` (reads the node's epoch state: its input,
+    own ranges and rows, the neighbours' round-0 ranges and bearings, its attitude)."""
+    nodes = sorted(set(peers) | {node.uav})
+    idx = {u: i for i, u in enumerate(nodes)}
+    ranges = dict(node.peer_ranges)
+    for o, d in node.my_ranges.items():
+        ranges[(min(node.uav, o), max(node.uav, o))] = d
+    pairs = det.RangePairs(nodes, ranges)
+    pl = pairs.pairs.tolist()
+    mine = [i for i, (a, b) in enumerate(pl) if node.uav in (a, b)]
+    nb = sorted(o for o in node.range_rows if o in peers)
+    owner = [o for o in nb for _ in node.range_rows[o]]
+    c = RoundCache(key=(tuple(sorted(peers)), len(node.peer_ranges), len(node.peer_bearings)), k=node.k,
+                   nodes=nodes, idx=idx, pairs=pairs, mine=mine,
+                   mine_other=[int(pl[i][1] if pl[i][0] == node.uav else pl[i][0]) for i in mine], nb=nb,
+                   rng_owner=np.array(owner, int), rng_node=np.array([idx[o] for o in owner], int))
+    Rm = node.pose.rotation().matrix()
+    _range_rows(node, peers, c, np.array([i for o in nb for i in node.range_rows[o]], int), owner, Rm)
+    if node.use_azel and node.rel_sigma:
+        _azel_rows(node, peers, c)
+    if node.use_tdoa:
+        _tdoa_rows(node, peers, c, Rm)
+    return c
+
+
+def _range_rows(node: GraphEstimator, peers, c: RoundCache, rows: np.ndarray, owner: list[int], Rm: np.ndarray):
+    if not len(rows):
+        return
+    inp = node.inp
+    c.rng_lever = np.array([node.tags.get(int(t), np.zeros(3)) for t in inp.range_tag_self[rows]]) @ Rm.T
+    if node.peer_levers:
+        # the neighbour's tag: lever arm rotated with its broadcast attitude (the own one enters
+        # as rng_lever, so the range is between the two tags)
+        c.rng_lever = c.rng_lever - np.array([peer_lever(node, peers, int(o), int(t))
+                                              for o, t in zip(owner, inp.range_tag_other[rows])])
+    c.rng_sig2 = np.where(inp.range_sigma[rows] > 0, inp.range_sigma[rows], node.uwb_sigma) ** 2
+    c.rng_has_lever = bool(node.peer_levers and np.any(c.rng_lever))
+    c.rng_z = inp.range_m[rows]
+
+
+def _azel_rows(node: GraphEstimator, peers, c: RoundCache):
+    # own observations (observer = this node), then the neighbours' observations of this node
+    # turned around
+    inp = node.inp
+    ai = [i for i, o in enumerate(inp.rel_target) if int(o) in peers]
+    tg = [int(inp.rel_target[i]) for i in ai]
+    sg = [inp.rel_sigma[i] if inp.rel_sigma[i] > 0 else node.rel_sigma for i in ai]
+    z = [(inp.rel_az[i], inp.rel_el[i]) for i in ai]
+    c.n_own_azel = len(tg)
+    if node.reverse_azel != "off":
+        for j, (az, el, sj) in sorted(node.peer_bearings.items()):
+            if j in peers:
+                tg.append(j)
+                sg.append(sj)
+                z.append((wrap_angle(az + np.pi), -el))
+    if tg:
+        c.azel_target = np.array(tg, int)
+        c.azel_node = np.array([c.idx[o] for o in tg], int)
+        c.azel_sig2 = np.array(sg, float) ** 2
+        c.azel_z = np.array(z, float).reshape(-1, 2)
+
+
+def _tdoa_rows(node: GraphEstimator, peers, c: RoundCache, Rm: np.ndarray):
+    # cooperative tdoa rows whose neighbours are all live: per end ("self", world lever),
+    # ("peer", node index, its tag's offset) or ("fixed", ENU point); listener, initiator, responder
+    own = node.own
+    for i in node.tdoa_coop:
+        ends = []
+        for nd, tg in own.tdoa_ends(node.inp, i):
+            if nd == node.uav:
+                ends.append(("self", Rm @ node.tags.get(tg, np.zeros(3)), None))
+            elif nd in node.anchors:
+                ends.append(("fixed", own.tdoa_end(nd, tg)[1], None))
+            elif nd in peers:
+                ends.append(("peer", c.idx[nd], peer_lever(node, peers, nd, tg)))
+            else:
+                break
+        else:
+            z, sig = own.tdoa_row(node.inp, i)
+            c.tdoa.append((ends, z, sig ** 2))

@@ -1,0 +1,198 @@
+"""The per-UAV graph's round solve: the epoch's cooperative links as normal equations on the own position.
+
+Every round (graph.py ``iterate``) the epoch's UWB part is rebuilt from the neighbours' broadcast
+states — the time-varying graph. A small Gauss–Newton solve on the node's own position p combines
+the local prior N(p_loc, P_loc) with the range, eq. 27 az/el and passive-tdoa factors to the
+neighbours, whose broadcast positions enter with their covariance marginalised into each factor's
+noise ("factor to an uncertain neighbour"). The models are ``swarmnav.models`` (uwb_range, bearing,
+tdoa), called vectorised over all links of a kind at once; no smoother work per round (~0.1 ms).
+
+* :class:`RoundCache` — what does not change between an epoch's rounds (rows, tag offsets, σ);
+* :func:`prepare_links` — the active links (weights > 0) at the round's positions, as :class:`Links`;
+* :func:`normal_equations` — (H, g) of prior + links at p, and the sandwich "meat" M for the
+  covariance of the solution (docs/estimators.md "Double counting");
+* :func:`gauss_newton`, :func:`sandwich_cov`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import detection as det
+from ..models.bearing import azel_jacobians, azel_residuals, noise_with_target
+from ..models.tdoa import tdoa_h
+from ..models.uwb_range import ranges, variance_with_peer
+
+
+@dataclass
+class RoundCache:
+    """An epoch's link structure, rebuilt only when the live peers or the known ranges change.
+
+    ``nodes``: every live node, sorted (positions P and covariances C of a round are in this
+    order); ``pairs``: the residual matrix's ranged pairs (detection); ``mine``: the indices of this
+    node's pairs in it and ``mine_other`` their other ends; ``nb``: the ranged live neighbours.
+    Range rows (one per measured range to a neighbour): owner, node index, tag offset between the
+    two tags (ENU m), σ² (m²), z (m). Az/el rows (own observations first, ``n_own_azel`` of them,
+    then the neighbours' observations of this node turned around): target, node index, σ² (rad²),
+    z (rad). Tdoa rows: ([(kind, x, lever)] of listener, initiator, responder — kind "self" (x =
+    the tag's world offset), "peer" (x = node index) or "fixed" (x = ENU point) —, z, σ²)."""
+
+    key: tuple
+    k: int
+    nodes: list[int]
+    idx: dict[int, int]
+    pairs: det.RangePairs
+    mine: list[int]
+    mine_other: list[int]
+    nb: list[int]
+    rng_owner: np.ndarray
+    rng_node: np.ndarray
+    rng_lever: np.ndarray | None = None
+    rng_sig2: np.ndarray | None = None
+    rng_z: np.ndarray | None = None
+    rng_has_lever: bool = False
+    n_own_azel: int = 0
+    azel_target: np.ndarray | None = None
+    azel_node: np.ndarray | None = None
+    azel_sig2: np.ndarray | None = None
+    azel_z: np.ndarray | None = None
+    tdoa: list = field(default_factory=list)
+
+
+@dataclass
+class Links:
+    """The active links of one solve. ``rng`` = (p_j, P_j, w, lever, σ², z) and ``azel`` = (p_t,
+    P_t, w, σ², z), arrays over the links, or None; ``tdoa`` = [(ends, z, σ², w)] with ends
+    (kind, position, covariance)."""
+
+    rng: tuple | None = None
+    azel: tuple | None = None
+    tdoa: list = field(default_factory=list)
+
+
+def prepare_links(c: RoundCache, P: np.ndarray, C: np.ndarray, weights: dict[int, float], tdoa_w: np.ndarray,
+                  infl: float | Callable[[int], float], azel_weight: str = "full", commit_azel: int | None = None) -> Links:
+    """The links of cache ``c`` with weight > 0 at positions P / covariances C (``c.nodes`` order),
+    each neighbour's covariance × ``infl`` (a number, or per node id). ``weights``: the range
+    links' weight per neighbour (eq. 24); az/el links keep weight 1 (``azel_weight`` "full") or
+    take their range link's ("range"); ``commit_azel``: use only the first that many az/el rows."""
+    L = Links()
+    per_node = callable(infl)
+    if len(c.rng_owner):
+        w = np.array([weights[o] for o in c.rng_owner])
+        keep = w > 0
+        if keep.any():
+            f = np.array([infl(int(o)) for o in c.rng_owner]) if per_node else np.full(len(w), infl)
+            n = c.rng_node[keep]
+            L.rng = (P[n], C[n] * f[keep][:, None, None], w[keep], c.rng_lever[keep], c.rng_sig2[keep], c.rng_z[keep])
+    if c.azel_target is not None:
+        na = len(c.azel_target) if commit_azel is None else commit_azel
+        tg = c.azel_target[:na]
+        w = np.ones(len(tg)) if azel_weight == "full" else np.array([weights.get(int(o), 1.0) for o in tg])
+        keep = w > 0
+        if keep.any():
+            f = np.array([infl(int(o)) for o in tg]) if per_node else np.full(len(w), infl)
+            n = c.azel_node[:na][keep]
+            L.azel = (P[n], C[n] * f[keep][:, None, None], w[keep], c.azel_sig2[:na][keep], c.azel_z[:na][keep])
+    if c.tdoa:
+        L.tdoa = [([(kind, P[x] + lev, C[x] * (infl(c.nodes[x]) if per_node else infl))
+                    if kind == "peer" else (kind, x, None) for kind, x, lev in ends], z, sig2, w)
+                  for (ends, z, sig2), w in zip(c.tdoa, tdoa_w) if w > 0]
+    return L
+
+
+def normal_equations(L: Links, p: np.ndarray, info: np.ndarray | None = None, p_loc: np.ndarray | None = None,
+                     L_true: Links | None = None):
+    """Gauss-Newton normal equations (H, g) at own position p of the prior N(p_loc, info⁻¹) (none
+    when ``info`` is None: the links only) and the links ``L``.
+
+    With ``L_true`` (the same links, with the neighbours' covariances the error model assigns
+    them) also the sandwich "meat" M = Σ JᵀW·R·WJ (+ info), W the weight of a factor in ``L`` and
+    R its error covariance in ``L_true``: the solution's covariance is H⁻¹MH⁻¹."""
+    if info is None:
+        H, gv = np.zeros((3, 3)), np.zeros(3)
+    else:
+        H, gv = info.copy(), info @ (p_loc - p)
+    meat = None if L_true is None else (np.zeros((3, 3)) if info is None else info.copy())
+    if L.rng is not None:
+        pj, Pj, w, lev, sig2, z = L.rng
+        rr, u = ranges(p + lev - pj)
+        var = variance_with_peer(sig2, u, Pj)
+        a = w / var
+        H += (u * a[:, None]).T @ u
+        gv += u.T @ (a * (z - rr))
+        if L_true is not None:
+            meat += (u * (a * a * variance_with_peer(sig2, u, L_true.rng[1]))[:, None]).T @ u
+    if L.azel is not None:
+        pt, Pt, wt, st2, z = L.azel
+        az, el, Jt = azel_jacobians(pt - p)
+        res = azel_residuals(z, az, el)
+        Ci = np.linalg.inv(noise_with_target(Jt, Pt, st2)) * wt[:, None, None]
+        # ∂h/∂p = −Jt: H += Jtᵀ Ci Jt, g += −Jtᵀ Ci res
+        CiJ = np.einsum("mjk,mkl->mjl", Ci, Jt)
+        H += np.einsum("mji,mjl->il", Jt, CiJ)
+        gv -= np.einsum("mji,mj->i", CiJ, res)
+        if L_true is not None:
+            meat += np.einsum("mji,mjk,mkl->il", CiJ, noise_with_target(Jt, L_true.azel[1], st2), CiJ)
+    tdoa_t = L_true.tdoa if L_true is not None else [None] * len(L.tdoa)
+    for (ends, z, sig2, w), true in zip(L.tdoa, tdoa_t):
+        # own position p: this node's tag(s) among the three; neighbours' broadcast covariance
+        # folded into the variance along their gradient; w = the link's weight
+        pts = [p + x if kind == "self" else x for kind, x, _ in ends]
+        h, *grads = tdoa_h(*pts)
+        j = sum(gi for (kind, _, _), gi in zip(ends, grads) if kind == "self")
+        var = sig2 + sum(gi @ Ce @ gi for (kind, _, Ce), gi in zip(ends, grads) if kind == "peer")
+        H += (w / var) * np.outer(j, j)
+        gv += (w * (z - h) / var) * j
+        if true is not None:
+            var_t = sig2 + sum(gi @ Ce @ gi for (kind, _, Ce), gi in zip(true[0], grads) if kind == "peer")
+            meat += (w * w * var_t / var ** 2) * np.outer(j, j)
+    return (H, gv) if L_true is None else (H, gv, meat)
+
+
+def gauss_newton(p: np.ndarray, normal_eq: Callable[[np.ndarray], tuple], iterations: int) -> np.ndarray:
+    """Gauss-Newton from p on ``normal_eq(p) -> (H, g)``: at most ``iterations`` steps, stopping
+    below 0.1 mm; a non-finite step (a degenerate or corrupt link set) keeps the last finite p."""
+    p = p.copy()
+    for _ in range(iterations):
+        H, gv = normal_eq(p)
+        dp = np.linalg.solve(H, gv)
+        if not np.all(np.isfinite(dp)):
+            break
+        p = p + dp
+        if np.linalg.norm(dp) < 1e-4:
+            break
+    return p
+
+
+def sandwich_cov(H: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """H⁻¹MH⁻¹ (H symmetrised)."""
+    Hi = np.linalg.inv(0.5 * (H + H.T))
+    return Hi @ M @ Hi
+
+
+def tdoa_residuals(c: RoundCache, P: np.ndarray, me: np.ndarray, C: np.ndarray | None = None,
+                   P_own: np.ndarray | None = None, normalise: bool = True) -> np.ndarray:
+    """|z − h| / σ of the cooperative tdoa rows of ``c`` at positions P (``c.nodes`` order), the own
+    body origin at ``me``. With covariances (``C`` per node, ``P_own`` for this node) σ is the
+    innovation's: σ² = σ_row² + Σ gᵀ·Cov·g over the ends; else the row's σ. ``normalise`` False:
+    |z − h| in metres."""
+    out = []
+    for ends, z, sig2 in c.tdoa:
+        pts = [me + x if kind == "self" else (P[x] + lev if kind == "peer" else x) for kind, x, lev in ends]
+        h, *grads = tdoa_h(*pts)
+        var = sig2
+        if C is not None:
+            # ends on the same body (two own tags, a neighbour's two tags) move together: their
+            # gradients are summed before the quadratic form
+            body: dict = {}
+            for (kind, x, _), g in zip(ends, grads):
+                if kind != "fixed":
+                    key = "self" if kind == "self" else int(x)
+                    body[key] = body.get(key, 0.0) + g
+            var += sum(g @ (P_own if key == "self" else C[key]) @ g for key, g in body.items())
+        out.append(abs(z - h) / np.sqrt(var) if normalise else abs(z - h))
+    return np.array(out, float)
