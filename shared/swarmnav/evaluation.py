@@ -7,7 +7,8 @@ and UAVs in sorted id order as the Zenoh deployment, so both transports give the
 The central oracle (a :class:`SwarmEstimator`) is stepped once per epoch with the range labels.
 
 Epochs scored are k = 1..K (epoch 0 is the initial knowledge, no estimate). Truth is the dataset's
-truth table interpolated (linearly; exact when the rows are at the epoch times) to the epoch times.
+truth table interpolated to the epoch times (linearly, the attitude by slerp; exact to the last bit or two
+when the rows are at the epoch times).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import numpy as np
 from .dataset import Dataset, EpochSlicer, epoch_of, node_view
 from .estimators import registry
 from .estimators.base import NodeEstimate
+from .geometry import from_rotation, to_rotation
 from .initial import initial_states
 from .protocol import node_epoch, run_epoch_in_process
 
@@ -65,7 +67,7 @@ class Truth:
 
 
 def truth_at_epochs(ds: Dataset) -> Truth:
-    """Truth of every UAV at the epoch times k = 1..K (linear interpolation, quaternion nlerp)."""
+    """Truth of every UAV at the epoch times k = 1..K (positions and velocities linear, attitude slerp)."""
     meta = ds.meta
     uavs = np.array(meta.uav_ids(), int)
     K = meta.n_epochs()
@@ -86,13 +88,19 @@ def truth_at_epochs(ds: Dataset) -> Truth:
             for a, col in enumerate(cols):
                 arr[inside, j, a] = np.interp(t[inside], tt, tr[col][m][order])
         q = np.column_stack([tr[c][m][order] for c in ("qw", "qx", "qy", "qz")])
-        # make consecutive quaternions same-signed before interpolating
-        s = np.sign(np.einsum("ij,ij->i", q[1:], q[:-1]))
-        s[s == 0] = 1
-        q = q * np.concatenate([[1.0], np.cumprod(s)])[:, None]
-        qi = np.column_stack([np.interp(t[inside], tt, q[:, a]) for a in range(4)])
-        quat[inside, j] = qi / np.linalg.norm(qi, axis=1, keepdims=True)
+        quat[inside, j] = _slerp(tt, q, t[inside])
     return Truth(uavs, t, pos, vel, quat)
+
+
+def _slerp(tt: np.ndarray, q: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Attitudes q (M,4) at strictly increasing times tt, spherically interpolated to the times t
+    (clipped to [tt[0], tt[-1]]); (w, x, y, z) with w >= 0."""
+    from scipy.spatial.transform import Slerp
+
+    rot = to_rotation(q)
+    if len(tt) == 1:
+        return np.repeat(from_rotation(rot, canonical=True), len(t), axis=0)
+    return from_rotation(Slerp(tt, rot)(np.clip(t, tt[0], tt[-1])), canonical=True)
 
 
 def _store(res: RunResult, i: int, j: int, e: NodeEstimate, links: list) -> None:
