@@ -94,6 +94,8 @@ def inproc_one(n: int, dur: float, profile: str | None = None) -> dict:
     from swarmnav.evaluation import run_algorithm
     from swarmnav.sim import simulate
 
+    from services.settings import estimator_settings
+
     me = psutil.Process()
     out: dict = {"n": n, "duration_s": dur, "load1_before": load1()}
     sc = load_config(CONFIG, _overrides(n, dur))
@@ -105,7 +107,7 @@ def inproc_one(n: int, dur: float, profile: str | None = None) -> dict:
     K = ds.meta.n_epochs()
     out["epochs"] = K
     out["links_per_uav_epoch"] = 2.0 * len(r["t"]) / (K * n)  # each range serves both ends
-    settings = registry.estimator_settings(sc.estimation, base_dirs=(REPO, REPO / "configs"))
+    settings = estimator_settings(sc.estimation, base_dirs=(REPO, REPO / "configs"))
     stamps = []
 
     def prog(k, KK):
@@ -119,7 +121,7 @@ def inproc_one(n: int, dur: float, profile: str | None = None) -> dict:
         pr = cProfile.Profile(time.process_time)  # CPU time: on a shared machine wall time mostly measures waiting
         pr.enable()
     t0, c0 = time.perf_counter(), time.process_time()
-    res = run_algorithm(ds, ALGO, SEED, settings, prog)
+    res = run_algorithm(ds, ALGO, SEED, settings, prog, time.perf_counter)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     if pr is not None:
         pr.disable()

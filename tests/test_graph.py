@@ -354,7 +354,7 @@ def test_trained_delta_l_only_at_its_ranging_sigma(tmp_path):
     the documented fallback delta_l_fallback_sigmas × σ (MILUV: 0.19 m vs trained 0.10 m)."""
     import json
 
-    from swarmnav.estimators.registry import estimator_settings
+    from services.settings import estimator_settings
 
     sc = load_config("configs/smoke.toml")
     f = tmp_path / "dl.json"

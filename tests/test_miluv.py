@@ -238,7 +238,7 @@ def test_central_holds_the_initial_rest(converted, monkeypatch):
     from swarmnav.dataset import EpochSlicer
     from swarmnav.estimators import central as central_mod
     from swarmnav.estimators.central import CentralEstimator
-    from swarmnav.estimators.registry import settings_for_dataset
+    from services.settings import settings_for_dataset
     from swarmnav.evaluation import truth_at_epochs
     from swarmnav.initial import initial_states
 
@@ -271,7 +271,7 @@ def test_heldout_cross_validation(converted):
     import dataclasses
 
     from swarmnav.calibration import heldout_anchor_cv
-    from swarmnav.estimators.registry import settings_for_dataset
+    from services.settings import settings_for_dataset
 
     ds, _ = converted
     short = dataclasses.replace(ds, meta=ds.meta.model_copy(update={"duration_s": 20.0}))
@@ -295,7 +295,7 @@ def test_heldout_cv_holds_out_the_transactions_passive_rows(converted, monkeypat
 
     import swarmnav.evaluation as ev
     from swarmnav.calibration import heldout_anchor_cv
-    from swarmnav.estimators.registry import settings_for_dataset
+    from services.settings import settings_for_dataset
 
     ds, _ = converted
     short = dataclasses.replace(ds, meta=ds.meta.model_copy(update={"duration_s": 10.0}))
@@ -359,7 +359,7 @@ def test_cli(tmp_path):
     assert meta.n_epochs() == 778
     # configs/miluv.toml's [estimation] table travels in the dataset and reaches the estimators
     from swarmnav.config import load_estimation
-    from swarmnav.estimators.registry import settings_for_dataset
+    from services.settings import settings_for_dataset
 
     assert meta.config["estimation"] == load_estimation(ROOT / "configs" / "miluv.toml")
     st = settings_for_dataset(meta)

@@ -80,10 +80,11 @@ def test_sensor_sim_meta_answer_carries_no_schedule(dataset_dir):
 
 def test_node_view_keeps_the_settings(dataset_dir):
     from swarmnav.dataset import Dataset, node_view
-    from swarmnav.estimators import registry
+
+    from services.settings import settings_for_dataset
 
     meta = Dataset.read(dataset_dir).meta
-    a, b = registry.settings_for_dataset(meta), registry.settings_for_dataset(node_view(meta))
+    a, b = settings_for_dataset(meta), settings_for_dataset(node_view(meta))
     assert a == b
     assert meta.gnss_outages  # node_view copies; the dataset's meta is untouched
 
@@ -92,6 +93,8 @@ def test_in_process_estimators_get_the_node_meta(dataset_dir, monkeypatch):
     from swarmnav.dataset import Dataset
     from swarmnav.estimators import registry
     from swarmnav import evaluation
+
+    from services.settings import settings_for_dataset
 
     ds = Dataset.read(dataset_dir)
     seen = []
@@ -102,7 +105,7 @@ def test_in_process_estimators_get_the_node_meta(dataset_dir, monkeypatch):
         return real(algo, uav, meta, settings, init)
 
     monkeypatch.setattr(registry, "make_node", spy)
-    settings = registry.settings_for_dataset(ds.meta)
+    settings = settings_for_dataset(ds.meta)
     res = evaluation.run_algorithm(ds, "ins", 1, settings)
     assert len(seen) == len(ds.meta.uav_ids()) and np.isfinite(res.pos).all()
     full = ds.meta.model_dump(mode="json", by_alias=True)

@@ -226,12 +226,13 @@ def test_miluv_launch_and_evaluate_give_the_same_report_and_the_delta_l_used(tmp
     _assert_parity(ev, la)
     # the estimator's own Δl: on MILUV the settings' trained Δl does not apply (trained at another σ)
     from swarmnav.dataset import Dataset
-    from swarmnav.estimators import registry
     from swarmnav.estimators.graph import AtvfgEstimator
     from swarmnav.initial import initial_states
 
+    from services.settings import settings_for_dataset
+
     d = Dataset.read(ds)
-    settings = registry.settings_for_dataset(d.meta)
+    settings = settings_for_dataset(d.meta)
     u = d.meta.uav_ids()[0]
     est = AtvfgEstimator(u, d.meta, settings, initial_states(d, 0)[u])
     for rep in (ev, la):

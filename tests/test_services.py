@@ -85,6 +85,7 @@ def _in_process_dropout(dataset, uav, t_kill, t_restart):
     part in epochs with t_kill <= t < t_restart; before the first epoch with t >= t_restart it is
     rebuilt from the sensor-sim's restart alignment and bootstrapped from its peers' last states."""
     from services.sensor_sim.sim import restart_initial_state
+    from services.settings import settings_for_dataset
     from swarmnav.dataset import Dataset, EpochSlicer, node_view
     from swarmnav.estimators import registry
     from swarmnav.evaluation import truth_at_epochs
@@ -93,7 +94,7 @@ def _in_process_dropout(dataset, uav, t_kill, t_restart):
 
     ds = Dataset.read(dataset)
     meta, uavs, K = ds.meta, ds.meta.uav_ids(), ds.meta.n_epochs()
-    st = registry.settings_for_dataset(meta)
+    st = settings_for_dataset(meta)
     rounds, tol = int(st.get("rounds", 3)), float(st.get("convergence_m", 0.0))
     inits, tr, sl = initial_states(ds, 1), truth_at_epochs(ds), EpochSlicer(ds)
     nmeta = node_view(meta)  # what the sensor-sim's meta answer gives a node
@@ -125,13 +126,13 @@ def _clean_exit(run):
 
 def test_distributed_equals_in_process_with_garbage(smoke, base):
     from swarmnav.dataset import Dataset
-    from swarmnav.estimators import registry
     from swarmnav.evaluation import run_algorithm
 
     from services.runtime.service import code_digest
+    from services.settings import settings_for_dataset
 
     ds = Dataset.read(smoke)
-    ref = run_algorithm(ds, ALGO, 1, registry.settings_for_dataset(ds.meta))
+    ref = run_algorithm(ds, ALGO, 1, settings_for_dataset(ds.meta))
     # both sides must have run the same estimator code (sources may be edited while tests run)
     mine = code_digest()
     theirs = {u: re.search(r"code ([0-9a-f]{12})", (base["dir"] / "logs" / f"uav{u}.log").read_text()).group(1)

@@ -84,7 +84,7 @@ def _cross_validate(args) -> int:
     from swarmnav.calibration import heldout_anchor_cv
     from swarmnav.dataset import Dataset
     from swarmnav.errors import ConfigError
-    from swarmnav.estimators.registry import settings_for_dataset
+    from services.settings import settings_for_dataset
 
     t0 = time.perf_counter()
     key, _, vals = args.grid.partition("=")

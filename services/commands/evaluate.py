@@ -6,7 +6,7 @@ traj/<algo>/uav<id>.tum (+ traj/truth), evaluate.rrd, evaluate.log.
 
 Algorithm × seed runs are spread over ``--jobs`` worker processes (fork; OMP/BLAS limited to one
 thread each). Estimation is identical to the distributed run: same ``initial_states(ds, seed)``,
-the same settings dict (``swarmnav.estimators.registry.estimator_settings``), UAVs in sorted order.
+the same settings dict (``services.settings``: the [estimation] table and the trained Δl), UAVs in sorted order.
 With ``--dataset`` the seed only drives the initial-state draw; it defaults to the dataset's seed.
 Multi-seed runs pool every metric over the seeds; figures, TUM files at ``traj/<algo>/`` and the
 .rrd show the first seed (other seeds' TUM files go to ``traj/seed<N>/<algo>/``).
@@ -137,7 +137,7 @@ def _run_task(task):
             last[0] = k
 
     try:
-        return tid, run_algorithm(_DATASETS[seed], algo, seed, _SETTINGS, prog), None
+        return tid, run_algorithm(_DATASETS[seed], algo, seed, _SETTINGS, prog, time.perf_counter), None
     except Exception as e:  # noqa: BLE001 - reported by the parent: first line for the user, then the traceback
         from swarmnav.errors import describe_estimator_failure
 
@@ -167,7 +167,8 @@ def _setup_log(out: Path) -> logging.Handler:
 def _load_inputs(args):
     """-> (scenario_name, seeds, settings, config_sha256, datasets by seed, outage windows)."""
     from swarmnav.dataset import Dataset
-    from swarmnav.estimators import registry
+
+    from services.settings import estimator_settings, settings_for_dataset
 
     if args.config:
         from swarmnav.config import load_config
@@ -175,7 +176,7 @@ def _load_inputs(args):
         cfg_path = Path(args.config)
         sc = load_config(cfg_path, args.set)
         seeds = config_seeds(args.seeds, sc) if args.seeds else [sc.scenario.seed]
-        settings = registry.estimator_settings(sc.estimation, base_dirs=(cfg_path.resolve().parent.parent, cfg_path.resolve().parent))
+        settings = estimator_settings(sc.estimation, base_dirs=(cfg_path.resolve().parent.parent, cfg_path.resolve().parent))
         return sc.scenario.name, seeds, settings, sc.sha256(), None, cfg_path
     from services.provenance import dataset_sha256
 
@@ -189,7 +190,7 @@ def _load_inputs(args):
 
         raise ConfigError(f"--seeds {args.seeds.strip()}: names the seeds of a config's [evaluation] table; use --config")
     seeds = parse_seeds(args.seeds) if args.seeds else [ds.meta.seed if ds.meta.seed is not None else 0]
-    settings = registry.settings_for_dataset(ds.meta)
+    settings = settings_for_dataset(ds.meta)
     return ds.meta.name, seeds, settings, dataset_sha256(ds.meta), ds, None
 
 
@@ -268,7 +269,7 @@ def _run_serial(tasks, settings: dict, n_epochs: int, quiet: bool, handle) -> No
     for tid, a, s in tasks:
         bar = tqdm(total=n_epochs, desc=f"{a:>7} seed {s}", disable=quiet, leave=True)
         try:
-            res = run_algorithm(_DATASETS[s], a, s, settings, lambda k, KK: bar.update(1))
+            res = run_algorithm(_DATASETS[s], a, s, settings, lambda k, KK: bar.update(1), time.perf_counter)
             handle(tid, res, None)
         except Exception as e:  # noqa: BLE001
             handle(tid, None, describe_estimator_failure(a, s, e) + "\n" + traceback.format_exc())

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from services.settings import settings_for_dataset
 from swarmnav.dataset import Dataset
-from swarmnav.estimators import registry
 from swarmnav.evaluation import RunResult, link_labels, truth_at_epochs
 from swarmnav.wire import messages as M
 
@@ -314,7 +314,7 @@ class MonitorCore:
         # are the nodes' own (services/uav_node/node.py), the thresholds those the nodes reported
         rep = assemble_report(mode="distributed", meta=self.meta, seeds=[self.seed], runs={a: [r]}, truths=[tr],
                               labels=[self._labels if self._labels is not None else link_labels(self.ds)],
-                              settings=registry.settings_for_dataset(self.meta),
+                              settings=settings_for_dataset(self.meta),
                               provenance=provenance(self.config_sha256 or dataset_sha256(self.meta)),
                               source="config" if self.config_sha256 else "dataset", events=self.events,
                               excused=[self.excused], done=self.done, lost_epochs=sorted(self.lost_epochs),

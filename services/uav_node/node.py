@@ -24,6 +24,7 @@ from collections import deque
 from services.runtime.service import (Deadline, Inbox, code_digest, finish_process, install_signals, parse_key, setup_logging,
                             undeclare_all)
 from services.runtime.zconf import client_config
+from services.settings import settings_for_dataset
 from swarmnav.dataset import DatasetMeta
 from swarmnav.estimators import registry
 from swarmnav.estimators.base import NodeState
@@ -114,7 +115,7 @@ class Node:
         self.meta = DatasetMeta.model_validate(mm.meta)
         self.uav_ids = set(self.meta.uav_ids())
         self.seed = mm.seed
-        self.settings = registry.settings_for_dataset(self.meta)
+        self.settings = settings_for_dataset(self.meta)
         self.rounds = int(self.settings.get("rounds", 3))
         self.tol = float(self.settings.get("convergence_m", 0.0))
         self.peer_timeout = float(self.settings.get("peer_timeout_s", 2.0))
@@ -400,7 +401,7 @@ class Node:
         bytes0 = self.bytes_out
         wait = 0.0
         c0 = time.process_time()
-        gen = node_epoch(self.est, inp, self.rounds, self.tol)
+        gen = node_epoch(self.est, inp, self.rounds, self.tol, time.perf_counter)
         state = next(gen)
         self.cpu_est += time.process_time() - c0
         used: set[int] = set()

@@ -191,7 +191,7 @@ def node_view(meta: DatasetMeta) -> DatasetMeta:
     Kept: ids, kinds and roles of the nodes, their sensor noise specs and lever arms, anchor
     positions, origin, Earth model, epoch length and span, the nominal ranging σ and the scoring
     threshold derived from it, the initial-knowledge sigmas, ``config_sha256`` (provenance) and the
-    estimator settings (``config["estimation"]``, read by ``registry.settings_for_dataset``).
+    estimator settings (``config["estimation"]``, read by ``services.settings.settings_for_dataset``).
     Dropped: ``gnss_outages`` (outage windows), ``events`` (kill/restart schedule), the rest of
     ``config`` (fault windows, NLOS/interference parameters, outages, kills, trajectory, the
     simulator's sensor specs) and ``seed`` (with the config it would regenerate the whole run,

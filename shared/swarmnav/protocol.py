@@ -8,12 +8,13 @@ service both drive this generator, so with synchronous rounds they compute the s
 Round structure (docs/architecture.md): round 0 = predicted state (+ own ranges); round r = 1..R uses the
 neighbours' round r-1 states. Convergence is decided swarm-wide from the round's states, which
 every node receives, so every node stops after the same round.
+
+Pure: the core reads no clock. A caller that wants the estimator's time per epoch passes its clock.
 """
 
 from __future__ import annotations
 
-import time
-from collections.abc import Generator
+from collections.abc import Callable, Generator
 
 from .dataset import EpochInput
 from .estimators.base import NodeEstimate, NodeEstimator, NodeState
@@ -26,29 +27,36 @@ def swarm_converged(own: NodeState, peers: dict[int, NodeState], tol_m: float) -
     return own.delta_m < tol_m and all(s.delta_m < tol_m for s in peers.values())
 
 
-def node_epoch(est: NodeEstimator, inp: EpochInput, rounds: int, tol_m: float) -> NodeEpoch:
+def _no_clock() -> float:
+    return 0.0
+
+
+def node_epoch(est: NodeEstimator, inp: EpochInput, rounds: int, tol_m: float,
+               clock: Callable[[], float] | None = None) -> NodeEpoch:
     """One node's epoch. Yields states to broadcast; receives peers' same-round states.
 
-    The returned NodeEstimate carries ``step_ms``: wall time spent in the estimator for this
-    epoch (every round and the final covariance), excluding time suspended waiting for peers.
+    The returned NodeEstimate carries ``step_ms``: time spent in the estimator for this epoch
+    (every round and the final covariance), excluding time suspended waiting for peers, measured
+    with ``clock`` (seconds, e.g. the service's ``time.perf_counter``); 0 without a clock.
     """
+    clock = clock or _no_clock
     busy = 0.0
-    t0 = time.perf_counter()
+    t0 = clock()
     state = est.begin_epoch(inp)
-    busy += time.perf_counter() - t0
+    busy += clock() - t0
     peers = yield state
     done = 0
     for r in range(1, rounds + 1):
-        t0 = time.perf_counter()
+        t0 = clock()
         state = est.iterate(r, peers)
-        busy += time.perf_counter() - t0
+        busy += clock() - t0
         done = r
         peers = yield state
         if swarm_converged(state, peers, tol_m):
             break
-    t0 = time.perf_counter()
+    t0 = clock()
     out = est.end_epoch()
-    busy += time.perf_counter() - t0
+    busy += clock() - t0
     out.rounds = done
     out.step_ms = busy * 1e3
     return out
