@@ -37,8 +37,6 @@ from swarmnav.wire import messages as M
 REPO = Path(__file__).resolve().parents[1]
 STOP_GRACE_S = 2.5  # SIGTERM -> SIGKILL for children when the run is stopped
 MONITOR_GRACE_S = 4.0  # ... the monitor, which writes the run's report on SIGTERM, gets longer
-ESSENTIAL = ("sensor_sim", "monitor")
-PRINCIPAL = {"sensor_sim": "sensor-sim", "monitor": "monitor"}  # process name -> security principal
 
 
 def _pdeathsig():

@@ -310,12 +310,6 @@ def log_styles(algos: list[str], rec: rr.RecordingStream | None = None, link_alg
                                            for c, lbl in CLASS_LABELS.items()]), static=True, recording=rec)
 
 
-def log_position(algo: str, uav: int, pos, rec: rr.RecordingStream | None = None, radius: float = 2.0) -> None:
-    """One UAV's estimated (or, with algo "truth", true) position at the current time."""
-    rr.log(uav_path(algo, uav), rr.Points3D([np.asarray(pos, float)], radii=[radius], colors=[algo_color(algo)],
-                                            labels=[f"{uav}"]), recording=rec)
-
-
 def log_links(algo: str, positions: dict[int, np.ndarray], links, rec: rr.RecordingStream | None = None,
               radius: float = 0.3) -> None:
     """The epoch's links as segments between the two UAVs' positions, coloured by class.
@@ -327,10 +321,6 @@ def log_links(algo: str, positions: dict[int, np.ndarray], links, rec: rr.Record
             strips.append(np.array([positions[a], positions[b]], float))
             colors.append(CLASS_COLORS.get(int(c), (128, 128, 128)))
     rr.log(links_path(algo), rr.LineStrips3D(strips, colors=colors, radii=[radius]), recording=rec)
-
-
-def log_error(algo: str, quantity: str, who: str, value: float, rec: rr.RecordingStream | None = None) -> None:
-    rr.log(error_path(algo, quantity, who), rr.Scalars([float(value)]), recording=rec)
 
 
 def log_event(kind: str, uav: int, t: float, text: str | None = None, rec: rr.RecordingStream | None = None,

@@ -21,10 +21,6 @@ UAVS = [1, 2, 3, 4]
 # -- the ACL as data ------------------------------------------------------------------------------
 
 
-def _rules(principal):
-    return {r["id"].split(".", 1)[1]: r for r in acl.grants(RUN, principal)}
-
-
 def _ingress_puts(principal):
     return {k for r in acl.grants(RUN, principal) if "put" in r["messages"] and r["flows"] == ["ingress"] for k in r["key_exprs"]}
 

@@ -54,7 +54,6 @@ class MonitorCore:
 
         self.R, self.sink, self.rec, self.log, self.journal = R, sink, sink.rec, log, journal
         self.run, self.seed, self.algo, self.out = run, seed, algo, Path(out)
-        self.dataset_path = Path(dataset)
         self.ds = Dataset.read(dataset)
         self.meta = self.ds.meta
         self.uavs = self.meta.uav_ids()

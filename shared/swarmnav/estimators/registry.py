@@ -45,10 +45,6 @@ def register(name: str, cls: type, kind: str = "node") -> None:
     _EXTRA[name] = (cls, kind)
 
 
-def unregister(name: str) -> None:
-    _EXTRA.pop(name, None)
-
-
 def known() -> list[str]:
     return list(ALGORITHMS) + [n for n in _EXTRA if n not in _REGISTRY]
 

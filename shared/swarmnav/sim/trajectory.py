@@ -55,11 +55,6 @@ def _dS(x):
     return 30.0 * x * x * (1.0 - x) ** 2
 
 
-def _ddS(x):
-    x = np.clip(x, 0.0, 1.0)
-    return 60.0 * x * (1.0 - x) * (1.0 - 2.0 * x)
-
-
 def _window(tau, D, r):
     """Envelope that ramps 0->1 over r, holds, ramps 1->0 over the last r of a leg of length D."""
     e = _S(tau / r) - _S((tau - D + r) / r)
