@@ -67,7 +67,7 @@ class NodeState:
     # tdoa links; 0 = not given, receivers count ``ranges``) — the split-CI inflation of its state
     n_links: int = 0
     # round 0: the sender's smoothed positions (ENU m) of the epochs in its relink window, epoch k
-    # -> (3,) (graph.py _relinked_commit; empty when relinking is off)
+    # -> (3,) (relink.py RelinkedCommit; empty when relinking is off)
     traj: dict[int, np.ndarray] = field(default_factory=dict)
 
 

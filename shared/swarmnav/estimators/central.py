@@ -35,10 +35,11 @@ import numpy as np
 
 from ..dataset import DatasetMeta, EpochInput, FaultKind
 from ..geometry import skew
-from .base import InitialState, NodeEstimate, SwarmEstimator, tuned_settings
-from .factors import (DRAG_SIGMA_SCALE, range_to_point_factor, rotor_drag_factor, rotor_drag_prior, rotor_drag_sigma,
+from .base import InitialState, NodeEstimate, SwarmEstimator
+from .factors import (range_to_point_factor, rotor_drag_factor, rotor_drag_prior, rotor_drag_sigma,
                       tdoa_factor, tdoa_row)
 from .imu import InitialRest, mean_specific_force, preintegrate, preintegration_params
+from .settings import tuning
 
 
 def X(u: int, k: int) -> int:
@@ -143,16 +144,16 @@ class CentralEstimator(SwarmEstimator):
     name = "central"
 
     def __init__(self, meta: DatasetMeta, settings: dict, inits: dict[int, InitialState]):
-        s = tuned_settings(settings)  # [estimation.graph] overrides merged, as for graph.py
+        t = tuning(settings)  # [estimation.graph] overrides merged, typed, as for graph.py
         self.meta = meta
         self.uavs = sorted(inits)
         # own lag (not the distributed estimators' ``fixed_lag_s``): the joint window is dense (every
         # pair ranges), so ISAM2 re-eliminates ~18 x 15 states per epoch in the window; measured on
         # paper_faultfree 40 s: lag 5 s 124 ms/epoch, 2.5 s 59 ms, 1.5 s 35 ms, with the same
         # current-epoch RMSE (0.407 m) and NEES (4.1) — the filtered estimate is what is scored.
-        self.lag = float(s.get("central_lag_s", 1.5))
-        self.use_rel = bool(s.get("central_use_rel", True))
-        self.with_cov = bool(s.get("central_covariance", True))
+        self.lag = t.central_lag_s
+        self.use_rel = t.central_use_rel
+        self.with_cov = t.central_covariance
         self.anchors = meta.anchors()
         self.tags = {n.id: {k: np.asarray(v, float) for k, v in n.tags.items()} for n in meta.nodes}
         # bias random-walk floors (rad/s/√s, m/s²/√s) for the joint graph only: the shared imu.py
@@ -160,9 +161,9 @@ class CentralEstimator(SwarmEstimator):
         # rejects (IndeterminateLinearSystem; measured: still at 1e-5 / 1e-4 on paper_faultfree
         # epoch 2); 3e-5 / 3e-4 works and gives the same RMSE/NEES as 1e-4 / 1e-3 (0.407 m, 4.1).
         # Paper slaves: 8e-8 rad/s/√s, 1e-4 m/s²/√s true — the floor only loosens the gyro RW.
-        self.gyro_rw_floor = float(s.get("central_gyro_rw_floor", 3e-5))
-        self.accel_rw_floor = float(s.get("central_accel_rw_floor", 3e-4))
-        self.integration_sigma = float(s.get("central_integration_sigma", 1e-3))
+        self.gyro_rw_floor = t.central_gyro_rw_floor
+        self.accel_rw_floor = t.central_accel_rw_floor
+        self.integration_sigma = t.central_integration_sigma
         self.params = {}
         for u in self.uavs:
             imu = meta.node(u).imu
@@ -175,27 +176,27 @@ class CentralEstimator(SwarmEstimator):
             self.params[u] = pp
         self.pims = {u: gtsam.PreintegratedCombinedMeasurements(self.params[u], gtsam.imuBias.ConstantBias()) for u in self.uavs}
         p = gtsam.ISAM2Params()
-        p.setRelinearizeThreshold(float(s.get("central_relin_threshold", 0.05)))
-        p.relinearizeSkip = int(s.get("central_relin_skip", 1))
-        p.setFactorization(str(s.get("central_factorization", "CHOLESKY")).upper())
+        p.setRelinearizeThreshold(t.central_relin_threshold)
+        p.relinearizeSkip = t.central_relin_skip
+        p.setFactorization(t.central_factorization)
         self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag, p)
-        # rotor-drag model of multirotor UAVs, as in graph.py (_drag_factor; same settings keys),
-        # off during a UAV's initial rest phase
-        self.drag = {u for u in self.uavs if bool(s.get("rotor_drag", True))
+        # rotor-drag model of multirotor UAVs, as in the per-UAV graph (own_factors.OwnFactors.add_drag;
+        # same settings keys), off during a UAV's initial rest phase
+        self.drag = {u for u in self.uavs if t.rotor_drag
                      and getattr(meta.node(u), "airframe", None) == "multirotor"}
-        self.drag_mu0 = float(s.get("drag_mu_prior", 0.5))
-        self.drag_mu_sigma = float(s.get("drag_mu_prior_sigma", 0.5))
-        self.drag_sigma_scale = float(s.get("drag_sigma_scale", DRAG_SIGMA_SCALE))
-        self.tdoa_scale = float(s.get("tdoa_sigma_scale", 1.0))  # passive rows σ × this, as graph.py
-        self.tdoa_offset = float(s.get("tdoa_offset_m", 0.0))  # subtracted from every rdiff (m), as graph.py
+        self.drag_mu0 = t.drag_mu_prior
+        self.drag_mu_sigma = t.drag_mu_prior_sigma
+        self.drag_sigma_scale = t.drag_sigma_scale
+        self.tdoa_scale = t.tdoa_sigma_scale  # passive rows σ × this, as graph.py
+        self.tdoa_offset = t.tdoa_offset_m  # subtracted from every rdiff (m), as graph.py
         # a range or own tdoa row taken at t_r < t is fused with its anchor ends moved by
         # v_pred·(t − t_r), as graph.py's anchor_time_shift (zero when rows are stamped at the epoch)
-        self.anchor_time_shift = bool(s.get("anchor_time_shift", True))
+        self.anchor_time_shift = t.anchor_time_shift
         self._v_pred: dict[int, np.ndarray] = {}
         self._drag_started: set[int] = set()
         # initial rest phase, as graph.py (imu.InitialRest; same settings keys): V = 0 (σ
         # zupt_sigma_mps) while a UAV that started at rest is still by its IMU
-        self._rest = {u: InitialRest.from_settings(s, inits[u].vel, inits[u].vel_sigma, meta.earth.gravity_mps2)
+        self._rest = {u: InitialRest.from_settings(t, inits[u].vel, inits[u].vel_sigma, meta.earth.gravity_mps2)
                       for u in self.uavs}
         self.k = 0
         self.dropped = 0  # ranges removed by the oracle so far

@@ -68,6 +68,7 @@ from ..dataset import DatasetMeta, EpochInput
 from ..geometry import skew
 from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState
 from .imu import preintegrate, preintegration_params
+from .settings import tuning
 
 ATT, VEL, POS, BA, BG = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
 
@@ -108,30 +109,30 @@ class FkfEstimator(NodeEstimator):
 
     def __init__(self, uav: int, meta: DatasetMeta, settings: dict, init: InitialState):
         super().__init__(uav, meta, settings, init)
-        s = settings or {}
+        t = tuning(settings)  # the [estimation.graph] table merged over the top level, typed
         node = meta.node(uav)
         if node.imu is None:
             raise ValueError(f"fkf: UAV {uav} has no IMU noise model in the dataset meta")
         self.params = preintegration_params(node.imu, meta.earth)
-        self.beta_m = float(s.get("fkf_beta_master", 0.0))
-        self.beta_g = float(s.get("fkf_beta_gnss", 0.5))
-        self.beta_u = float(s.get("fkf_beta_uwb", 0.5))
+        self.beta_m = t.fkf_beta_master
+        self.beta_g = t.fkf_beta_gnss
+        self.beta_u = t.fkf_beta_uwb
         tot = self.beta_m + self.beta_g + self.beta_u
         self.beta_m, self.beta_g, self.beta_u = self.beta_m / tot, self.beta_g / tot, self.beta_u / tot
-        p = float(s.get("fkf_chi2_p", 0.999))
+        p = t.fkf_chi2_p
         self.chi2_p = p
-        self.isolation = str(s.get("fkf_isolation", "measurement"))
+        self.isolation = t.fkf_isolation
         if self.isolation not in ("measurement", "subfilter"):
             raise ValueError(f"fkf_isolation must be 'measurement' or 'subfilter', not {self.isolation!r}")
         self._chi2_cache: dict[int, float] = {}
         # GNSS is the only absolute reference of a slave: isolating it on a chi-square failure lets
         # a filter that became over-confident lock itself out for good, so it is off by default
-        self.gnss_isolation = bool(s.get("fkf_gnss_isolation", False))
-        self.nb_cov_scale = float(s.get("fkf_neighbour_cov_scale", 1.0))
+        self.gnss_isolation = t.fkf_gnss_isolation
+        self.nb_cov_scale = t.fkf_neighbour_cov_scale
         # "ci": local and UWB sub-filters fused with adaptive information-sharing factors
         # (ω, 1-ω) that need no independence (covariance intersection); "independent": plain
         # information sum (optimal only if neighbour estimates were independent of ours)
-        self.nb_fusion = str(s.get("fkf_neighbour_fusion", "ci"))
+        self.nb_fusion = t.fkf_neighbour_fusion
         if self.nb_fusion not in ("ci", "independent"):
             raise ValueError(f"fkf_neighbour_fusion must be 'ci' or 'independent', not {self.nb_fusion!r}")
         self._omegas = np.linspace(0.05, 0.95, 19)
@@ -140,7 +141,7 @@ class FkfEstimator(NodeEstimator):
         # neighbours (each neighbour's position variance along the line of sight × N, consistent
         # for any cross-correlation); "none" = independent (the old behaviour: NEES ~10⁴ on
         # paper_faultfree 100 s, then the chi-square test rejected every range).
-        self.nb_corr = str(s.get("fkf_neighbour_corr", "split"))
+        self.nb_corr = t.fkf_neighbour_corr
         if self.nb_corr not in ("split", "none"):
             raise ValueError(f"fkf_neighbour_corr must be 'split' or 'none', not {self.nb_corr!r}")
         self.anchors = meta.anchors()
@@ -149,7 +150,7 @@ class FkfEstimator(NodeEstimator):
         # the filter, not the ranges, is the suspect (a consistent filter rejects ~0.1 % of clean
         # ranges at p 0.999), and anchor ranges are fused untested until the record recovers;
         # 0 disables the guard
-        self.anchor_max_reject = int(s.get("fkf_anchor_max_reject", 3))
+        self.anchor_max_reject = t.fkf_anchor_max_reject
         self._anchor_fails: deque[bool] = deque(maxlen=max(1, 2 * self.anchor_max_reject))
         self.tags_self = {k: np.asarray(v, float) for k, v in node.tags.items()}
         self.tags_all = {n.id: {k: np.asarray(v, float) for k, v in n.tags.items()} for n in meta.nodes}

@@ -109,7 +109,7 @@ class GraphEstimator(NodeEstimator):
         # receiver (0) at its stated σ; a per-role override wins
         self.gnss_scale = 1.0 if node.gnss_correlated_sigma_m == 0 else t.gnss_sigma_scale
         self.gnss_scale = float(t.gnss_sigma_scale_by_role.get(str(node.role), self.gnss_scale))
-        self._rest = InitialRest.from_settings(s, init.vel, init.vel_sigma, float(np.linalg.norm(self.params.n_gravity)))
+        self._rest = InitialRest.from_settings(t, init.vel, init.vel_sigma, float(np.linalg.norm(self.params.n_gravity)))
         self.drag = t.rotor_drag and getattr(node, "airframe", None) == "multirotor"
         self.own = OwnFactors(uav, meta, t, self.uwb_sigma, self.tags, self.params, self.drag)
         self.use_tdoa, self.tdoa_detection = t.use_tdoa, t.tdoa_detection

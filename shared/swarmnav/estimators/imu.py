@@ -80,16 +80,16 @@ class InitialRest:
         self._dv = np.zeros(3)
 
     @classmethod
-    def from_settings(cls, s: dict, init_vel: np.ndarray, init_vel_sigma: float, gravity_mps2: float) -> "InitialRest":
-        """The estimators' detector: active when ``initial_rest_zupt`` (default on) and the node's
+    def from_settings(cls, t, init_vel: np.ndarray, init_vel_sigma: float, gravity_mps2: float) -> "InitialRest":
+        """The estimators' detector (``t``: the typed tuning, settings.EstimatorTuning): active when ``initial_rest_zupt`` (default on) and the node's
         initial velocity and its σ are both ≤ ``rest_max_speed_mps`` (0.1); thresholds
         ``rest_gyro_std`` (0.01 rad/s) and ``rest_accel_std`` (0.1 m/s²); prior σ ``zupt_sigma_mps``
         (0.02 m/s)."""
-        vmax = float(s.get("rest_max_speed_mps", 0.1))
-        active = (bool(s.get("initial_rest_zupt", True)) and float(init_vel_sigma) <= vmax
+        vmax = t.rest_max_speed_mps
+        active = (t.initial_rest_zupt and float(init_vel_sigma) <= vmax
                   and float(np.linalg.norm(init_vel)) <= vmax)
-        return cls(active, gravity_mps2, float(s.get("rest_gyro_std", 0.01)), float(s.get("rest_accel_std", 0.1)), vmax,
-                   float(s.get("zupt_sigma_mps", 0.02)))
+        return cls(active, gravity_mps2, t.rest_gyro_std, t.rest_accel_std, vmax,
+                   t.zupt_sigma_mps)
 
     def update(self, inp: EpochInput) -> bool:
         """Feed one epoch's IMU samples; returns ``active`` after it."""

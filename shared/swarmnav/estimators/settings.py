@@ -3,9 +3,9 @@
 One model, :class:`EstimatorTuning`, lists every tuning key the estimators read (graph.py: atvfg,
 atvfg_paper, fg, ins; central.py; fkf.py; imu.py's rest detector), with its default, unit and
 meaning. The config loader validates ``[estimation.graph]`` against it (``extra="forbid"``), so a
-typo fails naming the key instead of being silently ignored. The per-UAV graph estimators read
-:func:`tuning` (this model, the defaults in one place); central.py, fkf.py and imu.py still read
-their settings dict with the same defaults, which tests/test_settings.py holds equal to this list.
+typo fails naming the key instead of being silently ignored. Every estimator reads its tuning
+through :func:`tuning` (this model: the defaults are here and only here; tests/test_settings.py
+holds every key the estimators read to this list).
 
 Units: metres (m), seconds (s), m/s, radians unless a name says otherwise; "factor" = multiple of
 the quantity named; "scale" = multiplies a σ.
