@@ -35,6 +35,8 @@ import numpy as np
 
 from ..dataset import DatasetMeta, EpochInput, FaultKind
 from ..geometry import skew
+from ..models import bearing, uwb_range
+from ..models.base import wrap_angle
 from .base import InitialState, NodeEstimate, SwarmEstimator
 from .factors import (range_to_point_factor, rotor_drag_factor, rotor_drag_prior, rotor_drag_sigma,
                       tdoa_factor, tdoa_row)
@@ -67,19 +69,21 @@ def keep_range(fault_kind: int, fault_err: float, threshold: float) -> bool:
 
 
 def _pair_range_factor(ka: int, kb: int, la: np.ndarray, lb: np.ndarray, z: float, noise) -> gtsam.NonlinearFactor:
-    """Range between tag la on pose ka and tag lb on pose kb."""
+    """Range between tag la on pose ka and tag lb on pose kb (``models.uwb_range.range_h``)."""
     if not np.any(la) and not np.any(lb):
         return gtsam.RangeFactorPose3(ka, kb, float(z), noise)
 
     def err(this, v, H):
         Pa, Pb = v.atPose3(this.keys()[0]), v.atPose3(this.keys()[1])
         Ra, Rb = Pa.rotation().matrix(), Pb.rotation().matrix()
-        d = Pa.translation() + Ra @ la - Pb.translation() - Rb @ lb
-        r = float(np.linalg.norm(d))
-        u = d / max(r, 1e-9)
+        # models.uwb_range: h = ‖tag_a − tag_b‖, ∂h/∂tag_a = u, ∂h/∂tag_b = −u; the chain rule
+        # through each pose (tag = p + R l, right-perturbed) is here. Both tags relative to pose b's
+        # origin (the range is translation-invariant; this order of sums is the one the figures
+        # were pinned with)
+        r, u_a, u_b = uwb_range.range_h(Pa.translation() + Ra @ la - Pb.translation(), Rb @ lb)
         if H is not None:
-            H[0] = (u @ np.hstack([-Ra @ skew(la), Ra])).reshape(1, 6)
-            H[1] = (-u @ np.hstack([-Rb @ skew(lb), Rb])).reshape(1, 6)
+            H[0] = (u_a @ np.hstack([-Ra @ skew(la), Ra])).reshape(1, 6)
+            H[1] = (u_b @ np.hstack([-Rb @ skew(lb), Rb])).reshape(1, 6)
         return np.array([r - z])
 
     return gtsam.CustomFactor(noise, [ka, kb], err)
@@ -95,10 +99,11 @@ def azel_block_factor(key_obs: int, key_tgts: list[int], az: np.ndarray, el: np.
                       sigmas: np.ndarray) -> gtsam.CustomFactor:
     """All of one observer's eq. 27 azimuth/elevation measurements of an epoch in one factor.
 
-    Same model as ``factors.azel_factor`` (ENU az/el, azimuth residual wrapped, error h − z), but
-    vectorised over the targets: one Python callback per observer instead of one per pair (the
-    306 single factors per paper epoch cost ~60 µs each at every relinearisation). Rows are
-    whitened here (noise model Unit), so each pair keeps its own σ.
+    The model is ``models.bearing`` (``azel_jacobians``: ENU az/el and ∂/∂(p_tgt − p_obs); azimuth
+    residual wrapped, error h − z), as in ``factors.azel_factor``, but vectorised over the targets:
+    one Python callback per observer instead of one per pair (the 306 single factors per paper
+    epoch cost ~60 µs each at every relinearisation). Rows are whitened here (noise model Unit), so
+    each pair keeps its own σ.
     """
     n = len(key_tgts)
     z = np.stack([np.asarray(az, float), np.asarray(el, float)], axis=1)  # (n,2)
@@ -114,17 +119,10 @@ def azel_block_factor(key_obs: int, key_tgts: list[int], az: np.ndarray, el: np.
             pts[i] = P.translation()
             if H is not None:
                 Rts.append(P.rotation().matrix())
-        d = pts - po
-        e_, n_, u_ = d[:, 0], d[:, 1], d[:, 2]
-        h2 = np.maximum(e_ * e_ + n_ * n_, 1e-18)
-        h = np.sqrt(h2)
-        r2 = np.maximum(h2 + u_ * u_, 1e-18)
-        res = np.stack([np.arctan2(n_, e_), np.arctan2(u_, h)], axis=1) - z
-        res[:, 0] = np.pi - np.mod(np.pi - res[:, 0], 2 * np.pi)
+        az_h, el_h, Jd = bearing.azel_jacobians(pts - po)  # models.bearing: h, ∂h/∂(p_tgt − p_obs)
+        res = np.stack([az_h, el_h], axis=1) - z
+        res[:, 0] = wrap_angle(res[:, 0])
         if H is not None:
-            Jd = np.zeros((n, 2, 3))  # d(az, el) / d(p_tgt - p_obs)
-            Jd[:, 0, 0], Jd[:, 0, 1] = -n_ / h2, e_ / h2
-            Jd[:, 1, 0], Jd[:, 1, 1], Jd[:, 1, 2] = -e_ * u_ / (h * r2), -n_ * u_ / (h * r2), h / r2
             Jd *= w[:, None, None]
             Ho = np.zeros((2 * n, 6))
             Ho[:, 3:6] = -(Jd @ Ro).reshape(2 * n, 3)
