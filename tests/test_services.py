@@ -91,11 +91,13 @@ def _in_process_dropout(dataset, uav, t_kill, t_restart):
     from swarmnav.evaluation import truth_at_epochs
     from swarmnav.initial import initial_states
     from swarmnav.protocol import node_epoch, run_epoch_in_process
+    from swarmnav.scenario import estimation_values
 
     ds = Dataset.read(dataset)
     meta, uavs, K = ds.meta, ds.meta.uav_ids(), ds.meta.n_epochs()
     st = settings_for_dataset(meta)
-    rounds, tol = int(st.get("rounds", 3)), float(st.get("convergence_m", 0.0))
+    est = estimation_values(st)
+    rounds, tol = est.rounds, est.convergence_m
     inits, tr, sl = initial_states(ds, 1), truth_at_epochs(ds), EpochSlicer(ds)
     nmeta = node_view(meta)  # what the sensor-sim's meta answer gives a node
     nodes = {u: registry.make_node(ALGO, u, nmeta, st, inits[u]) for u in uavs}

@@ -112,3 +112,35 @@ def test_the_graph_estimators_read_the_typed_model():
     assert (t.commit_weight, t.use_tdoa, t.report) == (0.2, False, "round")
     with pytest.raises(Exception, match="commit_weight"):
         S.tuning({"graph": {"commit_weight": 2.0}})
+
+
+# [estimation]-table reads with a literal default that are not converted yet: files another change
+# owns at the time of writing (the hot-path work on detection.py and services/uav_node/). Each must
+# become scenario.estimation_values(...).<key>; the test fails when an entry here is gone, so the
+# list only shrinks.
+LITERAL_ESTIMATION_DEFAULTS = {
+    ("shared/swarmnav/estimators/detection.py", "delta_l_fallback_sigmas"),
+    ("services/uav_node/node.py", "rounds"),
+    ("services/uav_node/node.py", "convergence_m"),
+    ("services/uav_node/node.py", "peer_timeout_s"),
+}
+
+
+def test_estimation_table_defaults_live_in_the_scenario_model():
+    """rounds, convergence_m, fixed_lag_s, ... are read through scenario.estimation_values (the
+    defaults of scenario.Estimation), never with a ``.get(key, default)`` of their own."""
+    from swarmnav.scenario import Estimation, estimation_values
+
+    keys = set(Estimation.model_fields)
+    found = set()
+    for p in sorted([*(REPO / "shared").rglob("*.py"), *(REPO / "services").rglob("*.py")]):
+        for n in ast.walk(ast.parse(p.read_text())):
+            if (isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "get"
+                    and len(n.args) == 2 and isinstance(n.args[0], ast.Constant) and n.args[0].value in keys):
+                found.add((p.relative_to(REPO).as_posix(), n.args[0].value))
+    assert found <= LITERAL_ESTIMATION_DEFAULTS, f"literal defaults of [estimation] keys: {sorted(found - LITERAL_ESTIMATION_DEFAULTS)}"
+    assert LITERAL_ESTIMATION_DEFAULTS <= found, f"converted, drop from the list: {sorted(LITERAL_ESTIMATION_DEFAULTS - found)}"
+    e = estimation_values({"rounds": 7, "delta_l_m": 0.3, "commit_weight": 0.2})
+    assert (e.rounds, e.fixed_lag_s, e.convergence_m) == (7, Estimation().fixed_lag_s, Estimation().convergence_m)
+    with pytest.raises(Exception, match="rounds"):
+        estimation_values({"rounds": 0})

@@ -24,6 +24,7 @@ from .estimators.base import NodeEstimate
 from .geometry import from_rotation, to_rotation
 from .initial import initial_states
 from .protocol import node_epoch, run_epoch_in_process
+from .scenario import estimation_values
 
 LINK_DTYPE = np.dtype([("k", np.int32), ("observer", np.int32), ("other", np.int32), ("cls", np.int8),
                        ("residual_m", np.float64), ("weight", np.float64)])
@@ -134,8 +135,8 @@ def run_algorithm(ds: Dataset, algo: str, seed: int, settings: dict,
     res = RunResult.empty(algo, seed, uavs, t)
     inits = initial_states(ds, seed)
     links: list[tuple] = []
-    rounds = int(settings.get("rounds", 3))
-    tol = float(settings.get("convergence_m", 0.0))
+    est = estimation_values(settings)
+    rounds, tol = est.rounds, est.convergence_m
     t_start = tick()
     if registry.kind(algo) == "swarm":
         est = registry.make_swarm(algo, meta, settings, inits)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Mapping
 from typing import Annotated, Literal
 
 import numpy as np
@@ -323,6 +324,16 @@ class Estimation(_Model):
 
         validate_tuning(v)  # a typo'd key fails naming it
         return v
+
+
+def estimation_values(settings: Mapping | None) -> Estimation:
+    """The typed ``[estimation]`` values of an estimator settings dict (``registry.estimator_settings``:
+    this table's ``model_dump()`` plus ``delta_l_m``, ...): the fields the dict sets, validated, and
+    :class:`Estimation`'s defaults for the others. Every reader of ``rounds``, ``convergence_m``,
+    ``fixed_lag_s``, ``residual_window_epochs``, ``delta_l_fallback_sigmas`` or ``peer_timeout_s``
+    goes through it, so their defaults are the fields above and nowhere else."""
+    s = settings or {}
+    return Estimation.model_validate({k: s[k] for k in Estimation.model_fields if k in s})
 
 
 def parse_seed_spec(spec: str | int | list[int]) -> list[int]:

@@ -52,6 +52,7 @@ from . import detection as det
 from ..dataset import DatasetMeta, EpochInput
 from ..models.altimeter import DEFAULT_SIGMA_M as DEFAULT_ALT_SIGMA
 from ..models.gnss import position_sigma
+from ..scenario import estimation_values
 from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState, tuned_settings
 from .factors import altitude_factor
 from .graph_links import detect_links, own_bearings, own_ranges, rot3, round_cache, tdoa_weights
@@ -78,7 +79,8 @@ class GraphEstimator(NodeEstimator):
         super().__init__(uav, meta, settings, init)
         s = tuned_settings(settings)  # [estimation.graph] overrides merged
         t = self.tuning = tuning(s)
-        self.lag = float(s.get("fixed_lag_s", 5.0))
+        est = estimation_values(s)  # the [estimation] table's own keys, typed
+        self.lag = est.fixed_lag_s
         self.uwb_sigma = float(meta.uwb_sigma_m)
         self.rel_sigma = float(meta.rel_sigma_rad) if meta.rel_sigma_rad else None
         self.delta_l = det.node_delta_l(s, self.uwb_sigma, t.delta_l_sigma_tolerance)
@@ -91,7 +93,7 @@ class GraphEstimator(NodeEstimator):
         self.gn_iters, self.report, self.commit_weight = t.gn_iterations, t.report, t.commit_weight
         # K-means pool: fixed window if residual_window_epochs > 1, else adaptive (>= 16 residuals,
         # at most 30 epochs; the paper's ~150 per epoch -> current epoch only)
-        self.window = det.ResidualWindow(int(s.get("residual_window_epochs", 1)), t.residual_window_min,
+        self.window = det.ResidualWindow(est.residual_window_epochs, t.residual_window_min,
                                          t.residual_window_max_epochs)
         node = meta.node(uav)
         self.tags = {int(k): np.asarray(v, float) for k, v in node.tags.items()}
@@ -113,7 +115,7 @@ class GraphEstimator(NodeEstimator):
         self.drag = t.rotor_drag and getattr(node, "airframe", None) == "multirotor"
         self.own = OwnFactors(uav, meta, t, self.uwb_sigma, self.tags, self.params, self.drag)
         self.use_tdoa, self.tdoa_detection = t.use_tdoa, t.tdoa_detection
-        self.relinker = RelinkedCommit(t, s, float(meta.epoch_dt_s), self.lag, self.detect)
+        self.relinker = RelinkedCommit(t, est, float(meta.epoch_dt_s), self.lag, self.detect)
         self.relink = self.relinker.epochs
         imu = node.imu
         self.bias_sigmas = np.r_[[max(imu.accel_bias_sigma, 1e-4)] * 3, [max(imu.gyro_bias_sigma, 1e-6)] * 3]

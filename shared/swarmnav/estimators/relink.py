@@ -46,7 +46,9 @@ class RelinkRecord:
 class RelinkedCommit:
     """The relink window of one node and its commit."""
 
-    def __init__(self, t, settings: dict, epoch_dt: float, lag_s: float, detect: bool):
+    def __init__(self, t, est, epoch_dt: float, lag_s: float, detect: bool):
+        """``t``: the node's EstimatorTuning; ``est``: its typed ``[estimation]`` values
+        (``scenario.estimation_values``)."""
         relink_s = float(t.relink_s)
         # window in epochs (0 = off), kept inside the smoother's lag
         self.epochs = max(0, min(int(round(relink_s / epoch_dt)), int(lag_s / epoch_dt) - 2)) if relink_s > 0 else 0
@@ -56,7 +58,7 @@ class RelinkedCommit:
         self.weight, self.cov_scale = t.relink_weight, t.relink_cov_scale
         self.detect = detect and t.relink_tdoa_detection
         dl = t.relink_tdoa_delta_l
-        self.delta_l = float(settings.get("delta_l_fallback_sigmas", 3.0) if dl is None else dl)
+        self.delta_l = float(est.delta_l_fallback_sigmas if dl is None else dl)
         self.innovation = t.relink_tdoa_sigma == "innovation"
         self.reset()
 
