@@ -17,7 +17,8 @@ converged range residuals |d_ij - |p_i - p_j|| as JSON (key "delta_l_m"). `atvfg
 --dataset: truth-free K-fold cross-validation of one estimator setting on a recording with fixed
 anchors: every K-th anchor range is held out (with the passive-listening rows of the same
 transactions), `fg` (or --algo atvfg) runs on the rest with each candidate value (--grid
-KEY=V1,V2,..., a graph.py settings key), and the held-out ranges are predicted from the estimates.
+KEY=V1,V2,..., an [estimation.graph] tuning key: docs/settings.md), and the held-out ranges are
+predicted from the estimates.
 Prints RMS and median prediction error per candidate (lower = the better model of the data), the
 held-out ranges' NIS (error² over the range σ² plus the estimate's position variance along the line
 of sight; a truth-free counterpart of NEES: mean 1 and median 0.455 when consistent, larger when

@@ -109,7 +109,7 @@ class Node(_M):
     gnss_correlated_sigma_m: float | None = None
     gnss_correlation_time_s: float | None = None  # its correlation time τ, s
     # UAVs: the vehicle type when the recording knows it ("multirotor": the graph estimators may
-    # use the rotor-drag model, graph.py _drag_factor); None = unspecified (the simulator's UAVs)
+    # use the rotor-drag model, own_factors.OwnFactors.add_drag); None = unspecified (the simulator's UAVs)
     airframe: Literal["multirotor"] | None = None
 
 
