@@ -55,7 +55,7 @@ from ..models.gnss import position_sigma
 from ..scenario import estimation_values
 from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState, tuned_settings
 from .factors import altitude_factor
-from .graph_links import detect_links, own_bearings, own_ranges, rot3, round_cache, tdoa_weights
+from .graph_links import detect_links, own_bearings, own_hood, own_ranges, rot3, round_cache, take_round0, tdoa_weights
 from .imu import InitialRest, preintegrate
 from .smoother import floored_params
 from .own_factors import DRAG_KEY, OwnFactors
@@ -90,6 +90,7 @@ class GraphEstimator(NodeEstimator):
         self.use_azel, self.azel_weight, self.reverse_azel = t.use_azel, t.azel_weight, t.reverse_azel
         self.cov_infl = None if t.neighbour_cov_inflation == "links" else float(t.neighbour_cov_inflation)
         self.round_infl = t.round_cov_inflation  # None: as at commit
+        self.hood_radius = t.neighbourhood_radius_m  # None: the whole swarm is every node's neighbourhood
         self.gn_iters, self.report, self.commit_weight = t.gn_iterations, t.report, t.commit_weight
         # K-means pool: fixed window if residual_window_epochs > 1, else adaptive (>= 16 residuals,
         # at most 30 epochs; the paper's ~150 per epoch -> current epoch only)
@@ -100,10 +101,11 @@ class GraphEstimator(NodeEstimator):
         # every UAV's tag lever arms (neighbours' tags are placed with their broadcast attitude;
         # skipped when no other UAV's tag is off its body origin, e.g. every simulated scenario)
         self.tag_levers = {n.id: {int(k): np.asarray(v, float) for k, v in n.tags.items()}
-                           for n in meta.nodes if n.kind == "uav"}
+                           for n in meta.nodes if n.kind == "uav" and any(any(v) for v in n.tags.values())}
         self.peer_levers = t.peer_levers and any(
             np.any(v) for o, tags in self.tag_levers.items() if o != uav for v in tags.values())
         self.anchors = meta.anchors()
+        self._uav_ids = set(meta.uav_ids())
         self.params = floored_params(node.imu, meta.earth, *t.bias_rw_floor)
         self.gnss_extra_var = t.gnss_extra_var_m2
         # GNSS σ × gnss_sigma_scale where the dataset says the receiver has a time-correlated error
@@ -156,10 +158,14 @@ class GraphEstimator(NodeEstimator):
         self.p_loc = self.pose.translation().copy()
         self.p = self.p_loc.copy()
         self._info = np.linalg.inv(self.P_loc)
-        self.my_ranges, self.range_rows = own_ranges(inp, self.uav, set(self.meta.uav_ids()))
+        self.my_ranges, self.range_rows = own_ranges(inp, self.uav, self._uav_ids)
         self.peer_ranges: dict[tuple[int, int], float] = {}
         self.peer_links: dict[int, int] = {}
         self.peer_bearings: dict[int, tuple[float, float, float]] = {}
+        # the epoch's neighbourhood (graph_links.take_round0): 1-hop, and 1-hop + their ranges' ends
+        self.hood1 = own_hood(inp, self.uav, self.range_rows, self.tdoa_coop, self.own.tdoa_ends)
+        self.hood: set[int] = set()
+        self.round0_pending = True
         self.cache = None  # the rounds' per-epoch structure (graph_links.round_cache)
         self.delta_h = None
         bearings = own_bearings(inp, self.uav, self.rel_sigma) if (
@@ -234,18 +240,10 @@ class GraphEstimator(NodeEstimator):
             s = self._last_state
             self._last_state = NodeState(self.uav, s.k, r, s.t, s.pos, s.pos_cov, s.vel, 0.0)
             return self._last_state
-        for j, s in peers.items():
-            if s.ranges or s.n_links:  # round-0 states carry the sender's ranges, link count, bearings
-                self.peer_links[j] = max(len(s.ranges), int(s.n_links))
-                for o, d in s.ranges.items():
-                    self.peer_ranges.setdefault((min(j, o), max(j, o)), float(d))
-            if s.bearings and self.uav in s.bearings:
-                self.peer_bearings[j] = s.bearings[self.uav]
-            if s.r == 0:
-                self.relinker.peer_traj[j] = s.traj
-        key = (tuple(sorted(peers)), len(self.peer_ranges), len(self.peer_bearings))
+        hood = take_round0(self, peers)
+        key = (hood, len(self.peer_ranges), len(self.peer_bearings))
         if self.cache is None or self.cache.key != key or self.cache.k != self.k:
-            self.cache = round_cache(self, peers)
+            self.cache = round_cache(self, peers, hood)
         c = self.cache
         # positions / covariances of every node in c.nodes order (own row: own last state)
         self.P_round = np.array([peers[u].pos if u != self.uav else self._last_state.pos for u in c.nodes])

@@ -107,10 +107,68 @@ def peer_lever(node: GraphEstimator, peers: dict[int, NodeState], other: int, ta
     return rot3(q).matrix() @ lev
 
 
-def round_cache(node: GraphEstimator, peers: dict[int, NodeState]) -> RoundCache:
-    """The epoch's link structure for the live ``peers`` (reads the node's epoch state: its input,
-    own ranges and rows, the neighbours' round-0 ranges and bearings, its attitude)."""
-    nodes = sorted(set(peers) | {node.uav})
+def take_round0(node: GraphEstimator, peers: dict[int, NodeState]) -> tuple[int, ...]:
+    """Read what the round's states carry for this node and return the live nodes of its
+    neighbourhood, sorted (the round cache's ``nodes`` without the node itself).
+
+    The neighbourhood: the node's 1-hop neighbours — the UAVs it ranged, observed (az/el) or shares
+    a passive row with, those whose round-0 state reports a range to it or a bearing of it, and
+    those whose round-0 position is within ``neighbourhood_radius_m`` of its epoch prior (None:
+    every live UAV, the whole swarm) — plus the other ends of the ranges those neighbours report
+    (2-hop: the residual matrix holds every ranged pair with at least one end among the 1-hop
+    neighbours). Only 1-hop neighbours' ranges and link counts are read, so a node's work per round
+    grows with its neighbourhood, not with the swarm (docs/scale.md)."""
+    me = node.uav
+    radius2 = None if node.hood_radius is None else node.hood_radius ** 2
+    near = []
+    # only round-0 states carry ranges, bearings and trajectories, and they are the first round's
+    # peers: later rounds do not scan the swarm
+    for j, s in (peers.items() if node.round0_pending else ()):  # O(live peers), a membership test each
+        if s.bearings and me in s.bearings:
+            node.peer_bearings[j] = s.bearings[me]
+            node.hood1.add(j)
+        elif s.ranges and me in s.ranges:
+            node.hood1.add(j)
+        elif s.r == 0:
+            near.append(j)
+    if near and radius2 is None:
+        node.hood1.update(near)  # no neighbourhood radius: the whole swarm
+    elif near:
+        d = np.array([peers[j].pos for j in near]) - node.p_loc
+        node.hood1.update(j for j, d2 in zip(near, np.einsum("ij,ij->i", d, d).tolist()) if d2 <= radius2)
+    if not node.round0_pending:
+        return tuple(sorted(u for u in node.hood if u in peers))
+    node.round0_pending = False
+    for j, s in peers.items():  # in the peers' order: the first report of a pair's range is kept
+        if j in node.hood1 and (s.ranges or s.n_links):  # round-0 states carry ranges and link count
+            node.peer_links[j] = max(len(s.ranges), int(s.n_links))
+            for o, d in s.ranges.items():
+                node.peer_ranges.setdefault((min(j, o), max(j, o)), float(d))
+                node.hood.add(int(o))
+    node.hood.update(node.hood1)
+    node.hood.discard(me)
+    nodes = tuple(sorted(u for u in node.hood if u in peers))
+    for j in nodes:
+        if peers[j].r == 0:
+            node.relinker.peer_traj[j] = peers[j].traj
+    return nodes
+
+
+def own_hood(inp: EpochInput, uav: int, range_rows: dict[int, list[int]], tdoa_coop: list[int], ends_of) -> set[int]:
+    """The UAVs node ``uav`` measured this epoch: ranged, observed (az/el) or in a passive row with."""
+    hood = set(range_rows)
+    hood.update(int(o) for o in inp.rel_target)
+    for i in tdoa_coop:
+        hood.update(nd for nd, _ in ends_of(inp, i))
+    hood.discard(uav)
+    return hood
+
+
+def round_cache(node: GraphEstimator, peers: dict[int, NodeState], hood: tuple[int, ...]) -> RoundCache:
+    """The epoch's link structure among the node and its live neighbourhood ``hood`` (take_round0;
+    reads the node's epoch state: its input, own ranges and rows, the neighbours' round-0 ranges
+    and bearings, its attitude)."""
+    nodes = sorted(set(hood) | {node.uav})
     idx = {u: i for i, u in enumerate(nodes)}
     ranges = dict(node.peer_ranges)
     for o, d in node.my_ranges.items():
@@ -120,7 +178,7 @@ def round_cache(node: GraphEstimator, peers: dict[int, NodeState]) -> RoundCache
     mine = [i for i, (a, b) in enumerate(pl) if node.uav in (a, b)]
     nb = sorted(o for o in node.range_rows if o in peers)
     owner = [o for o in nb for _ in node.range_rows[o]]
-    c = RoundCache(key=(tuple(sorted(peers)), len(node.peer_ranges), len(node.peer_bearings)), k=node.k,
+    c = RoundCache(key=(hood, len(node.peer_ranges), len(node.peer_bearings)), k=node.k,
                    nodes=nodes, idx=idx, pairs=pairs, mine=mine,
                    mine_other=[int(pl[i][1] if pl[i][0] == node.uav else pl[i][0]) for i in mine], nb=nb,
                    rng_owner=np.array(owner, int), rng_node=np.array([idx[o] for o in owner], int))

@@ -45,6 +45,7 @@ class EstimatorTuning(BaseModel):
     gn_iterations: int = Field(2, ge=1, description="Gauss-Newton iterations per round solve")
     # -- double counting and what is reported (graph.py docstring, docs/estimators.md) -----------
     neighbour_cov_inflation: float | Literal["links"] = Field("links", description="neighbour covariance inflation at commit (× or per-sender link count)")
+    neighbourhood_radius_m: float | None = Field(None, gt=0, description="a node reads the ranges of, and solves with, the UAVs it measured or that measured it, those within this distance of it (m), and the other ends of their ranges (None: every live UAV, the whole swarm)")
     round_cov_inflation: float | None = Field(0.5, description="neighbour covariance × this in the round solves (None: as at commit)")
     commit_weight: float = Field(0.3, ge=0, le=1, description="weight of the cooperative information committed to the smoother")
     report: Literal["round", "belief", "smoother"] = Field("round", description="the estimate reported: the last round's solution (with its sandwich covariance), the belief, or the smoother's")
