@@ -114,16 +114,9 @@ def test_the_graph_estimators_read_the_typed_model():
         S.tuning({"graph": {"commit_weight": 2.0}})
 
 
-# [estimation]-table reads with a literal default that are not converted yet: files another change
-# owns at the time of writing (the hot-path work on detection.py and services/uav_node/). Each must
-# become scenario.estimation_values(...).<key>; the test fails when an entry here is gone, so the
-# list only shrinks.
-LITERAL_ESTIMATION_DEFAULTS = {
-    ("shared/swarmnav/estimators/detection.py", "delta_l_fallback_sigmas"),
-    ("services/uav_node/node.py", "rounds"),
-    ("services/uav_node/node.py", "convergence_m"),
-    ("services/uav_node/node.py", "peer_timeout_s"),
-}
+# [estimation]-table reads with a literal default not converted yet (none left; the test fails when an
+# entry here is gone, so the list only shrinks)
+LITERAL_ESTIMATION_DEFAULTS: set = set()
 
 
 def test_estimation_table_defaults_live_in_the_scenario_model():

@@ -29,6 +29,7 @@ from swarmnav.dataset import DatasetMeta
 from swarmnav.estimators import registry
 from swarmnav.estimators.base import NodeState
 from swarmnav.protocol import node_epoch
+from swarmnav.scenario import estimation_values
 from swarmnav.wire import keys
 from swarmnav.wire import messages as M
 
@@ -116,9 +117,8 @@ class Node:
         self.uav_ids = set(self.meta.uav_ids())
         self.seed = mm.seed
         self.settings = settings_for_dataset(self.meta)
-        self.rounds = int(self.settings.get("rounds", 3))
-        self.tol = float(self.settings.get("convergence_m", 0.0))
-        self.peer_timeout = float(self.settings.get("peer_timeout_s", 2.0))
+        est = estimation_values(self.settings)  # [estimation]: defaults in the scenario model only
+        self.rounds, self.tol, self.peer_timeout = est.rounds, est.convergence_m, est.peer_timeout_s
         init = self.query_one(keys.uav(self.run, self.uav, "init"), M.InitMsg, a.startup_timeout,
                               "restart=1" if a.rejoin else "")
         self.est = registry.make_node(a.algo, self.uav, self.meta, self.settings, M.msg_to_init(init))

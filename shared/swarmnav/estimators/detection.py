@@ -52,6 +52,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from .base import LinkClass
+from ..scenario import estimation_values
 
 H0, H1, H2 = LinkClass.H0_FAILED, LinkClass.H1_INTERFERED, LinkClass.H2_NORMAL
 
@@ -90,7 +91,7 @@ def node_delta_l(settings: dict, uwb_sigma_m: float, tolerance: float) -> float:
     dl, dl_sig = settings.get("delta_l_m"), settings.get("delta_l_uwb_sigma_m")
     if dl and dl_sig and abs(float(dl_sig) / uwb_sigma_m - 1.0) > float(tolerance):
         dl = None
-    return float(dl) if dl else fallback_delta_l(uwb_sigma_m, settings.get("delta_l_fallback_sigmas", 3.0))
+    return float(dl) if dl else fallback_delta_l(uwb_sigma_m, estimation_values(settings).delta_l_fallback_sigmas)
 
 
 def residual_matrix(positions: Mapping[int, np.ndarray], ranges: Mapping[tuple[int, int], float]
