@@ -177,7 +177,7 @@ def test_link_labels_merge_rows_per_epoch():
 def _block(x):
     d = {a: x for a in ("e", "n", "u", "3d")}
     return {"pos_rmse_m": d, "vel_rmse_mps": d, "uav1_pos_rmse_m": d, "per_uav_pos_rmse_m": {"1": x},
-            "nees": 3.0, "step_ms": {"p50": 1.0, "p99": 2.0}}
+            "nees": 3.0, "nees_mean": 3.0, "nees_in_band_share": 0.95, "step_ms": {"p50": 1.0, "p99": 2.0}}
 
 
 def test_report_contract_and_improvement_keys():
@@ -188,17 +188,23 @@ def test_report_contract_and_improvement_keys():
               provenance={"git": "abc", "config_sha256": "x", "packages": {}}, events=[])
     det = {"precision": 1.0, "recall": 0.5, "false_alarm_rate": float("nan")}
     rep = build_report(algorithms={"atvfg": _block(5.0), "fg": _block(10.0)}, detection=det, **kw)
+    assert validate_report(rep) == ["missing thresholds.delta_l_used_m"]  # assembly adds what the nodes used
+    rep["thresholds"]["delta_l_used_m"] = 0.3
     assert validate_report(rep) == []
     assert rep["improvement_pct"] == {"atvfg_vs_fg": 50.0}  # fkf did not run: no key
     assert rep["algorithms"]["atvfg"]["detection"]["false_alarm_rate"] is None  # NaN -> null
     assert "Table 2" in render_markdown(rep)
     rep2 = build_report(algorithms={"fg": _block(10.0)}, detection=None, **kw)
+    rep2["thresholds"]["delta_l_used_m"] = None
     assert rep2["improvement_pct"] == {} and validate_report(rep2) == []
     bad = dict(rep)
     bad.pop("thresholds")
     del bad["algorithms"]["fg"]["nees"]
+    del bad["algorithms"]["atvfg"]["nees_in_band_share"]
     errs = validate_report(bad)
     assert any("thresholds" in e for e in errs) and any("fg.nees" in e for e in errs)
+    assert "missing algorithms.atvfg.nees_in_band_share" in errs
+    assert "missing thresholds.delta_l_used_m" in errs
 
 
 # -- consistency (NEES band) and Monte-Carlo statistics ------------------------------------------
@@ -301,6 +307,7 @@ def test_report_monte_carlo_and_consistency_sections():
     blocks = {a: M.algorithm_metrics([1, 2], np.arange(10.0), list(e * f), list(e), list(P), [np.ones((10, 2))] * 3)
               for a, f in (("atvfg", 1.0), ("fg", 2.0))}
     rep = build_report(algorithms=blocks, **kw)
+    rep["thresholds"]["delta_l_used_m"] = 0.3  # assembly adds what the nodes used
     assert validate_report(rep) == []
     mc = rep["monte_carlo"]
     assert mc["n_seeds"] == 3 and set(mc["per_algorithm"]) == {"atvfg", "fg"} and set(mc["paired"]) == {"atvfg-fg"}

@@ -105,7 +105,8 @@ def validate_report(rep: dict) -> list[str]:
                 if d is not None:
                     need(d, ax, f"{w}{blk}.")
         need(a, "per_uav_pos_rmse_m", w)
-        need(a, "nees", w)
+        for k in ("nees", "nees_mean", "nees_in_band_share"):  # consistency, navlie-style (None without covariance)
+            need(a, k, w)
         st = need(a, "step_ms", w)
         if st is not None:
             need(st, "p50", f"{w}step_ms.")
@@ -132,6 +133,7 @@ def validate_report(rep: dict) -> list[str]:
             need(dst, k, "detection_single_threshold.")
     th = rep.get("thresholds") or {}
     need(th, "delta_l_m", "thresholds.")
+    need(th, "delta_l_used_m", "thresholds.")  # what the nodes used (None when no algorithm reported one)
     dh = need(th, "delta_h_m", "thresholds.")
     if dh is not None:
         need(dh, "p50", "thresholds.delta_h_m.")
