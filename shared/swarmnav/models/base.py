@@ -109,3 +109,20 @@ class MeasurementModel(abc.ABC):
     @abc.abstractmethod
     def example(cls, rng: np.random.Generator) -> tuple["MeasurementModel", np.ndarray]:
         """A model instance and a state at which to test it (tests/test_models.py)."""
+
+
+class DirectVelocity(MeasurementModel):
+    """A direct observation of the velocity: x = v (ENU m/s), h = v, ∂h/∂v = I, isotropic σ (m/s).
+    A GNSS velocity fix and the zero-velocity pseudo-measurement are this model."""
+
+    def __init__(self, sigma: float):
+        self.sigma = float(sigma)
+
+    def evaluate(self, x):
+        return np.asarray(x, float).copy()
+
+    def jacobian(self, x):
+        return np.eye(3)
+
+    def covariance(self):
+        return np.eye(3) * self.sigma ** 2

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import MeasurementModel, register, rotation_of
+from .base import DirectVelocity, MeasurementModel, register, rotation_of
 
 
 def position_sigma(sigma_fix, extra_var: float = 0.0, scale: float = 1.0) -> np.ndarray:
@@ -47,22 +47,10 @@ class GnssPosition(MeasurementModel):
 
 
 @register
-class GnssVelocity(MeasurementModel):
+class GnssVelocity(DirectVelocity):
     """x = v (ENU m/s); z = v."""
 
     name = "gnss_velocity"
-
-    def __init__(self, sigma: float):
-        self.sigma = float(sigma)
-
-    def evaluate(self, x):
-        return np.asarray(x, float).copy()
-
-    def jacobian(self, x):
-        return np.eye(3)
-
-    def covariance(self):
-        return np.eye(3) * self.sigma ** 2
 
     @classmethod
     def example(cls, rng):

@@ -8,26 +8,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import MeasurementModel, register
+from .base import DirectVelocity, register
 
 
 @register
-class ZeroVelocity(MeasurementModel):
+class ZeroVelocity(DirectVelocity):
     """x = v (ENU m/s); z = 0."""
 
     name = "zero_velocity"
-
-    def __init__(self, sigma: float):
-        self.sigma = float(sigma)
-
-    def evaluate(self, x):
-        return np.asarray(x, float).copy()
-
-    def jacobian(self, x):
-        return np.eye(3)
-
-    def covariance(self):
-        return np.eye(3) * self.sigma ** 2
 
     @classmethod
     def example(cls, rng):
