@@ -21,7 +21,8 @@ Epoch k (driven by ``swarmnav.protocol``):
     eq. 24 weight capped at (Δl/∂)² (``h1_weight_cap``), H2 full weight. fg — every in-range link,
     weight 1. Then a small Gauss–Newton solve on the own position (``rounds.py``): the local prior
     plus the range, az/el and tdoa factors to the neighbours, each neighbour's broadcast covariance
-    × ``round_cov_inflation`` (a *weight*, tuned for accuracy; not in what the node reports).
+    × ``round_cov_inflation`` (a *weight*, tuned for accuracy; not in what the node reports); with
+    ``round_warm_start`` the rounds start from p_loc + the last epoch's correction (fixed point unchanged).
 ``end_epoch``
     commit once: the cooperative factors (own-observed ones only: the neighbours' bearings of this
     node stay in the rounds), linearised at the final round position, each neighbour's covariance ×
@@ -57,12 +58,11 @@ from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator
 from .factors import altitude_factor
 from .graph_links import detect_links, own_bearings, own_hood, own_ranges, rot3, round_cache, take_round0, tdoa_weights
 from .imu import InitialRest, preintegrate
-from .smoother import floored_params
 from .own_factors import DRAG_KEY, OwnFactors
 from .relink import RelinkedCommit
 from .restart import ATT_SIGMA_RAD, restart_position, restart_velocity
 from .rounds import gauss_newton, normal_equations, prepare_links, sandwich_cov
-from .smoother import new_smoother
+from .smoother import floored_params, new_smoother
 from .settings import tuning
 
 __all__ = ["AtvfgEstimator", "FgEstimator", "InsEstimator", "GraphEstimator", "DRAG_KEY", "PAPER_SETTINGS"]
@@ -104,8 +104,7 @@ class GraphEstimator(NodeEstimator):
                            for n in meta.nodes if n.kind == "uav" and any(any(v) for v in n.tags.values())}
         self.peer_levers = t.peer_levers and any(
             np.any(v) for o, tags in self.tag_levers.items() if o != uav for v in tags.values())
-        self.anchors = meta.anchors()
-        self._uav_ids = set(meta.uav_ids())
+        self.anchors, self._uav_ids = meta.anchors(), set(meta.uav_ids())
         self.params = floored_params(node.imu, meta.earth, *t.bias_rw_floor)
         self.gnss_extra_var = t.gnss_extra_var_m2
         # GNSS σ × gnss_sigma_scale where the dataset says the receiver has a time-correlated error
@@ -136,7 +135,8 @@ class GraphEstimator(NodeEstimator):
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.bias)
         self.own.drag_new = self.drag  # a new smoother: M inserted again with its prior
         self.p_loc, self.P_loc = np.asarray(pos, float), np.diag(np.maximum(pos_sigma, 1e-3) ** 2)
-        self.p, self._v_pred, self._links_ready = self.p_loc.copy(), self.vel.copy(), False
+        # _carry (round_warm_start): the last epoch's round solution − the smoother after the commit (ENU m)
+        self.p, self._v_pred, self._links_ready, self._carry = self.p_loc.copy(), self.vel.copy(), False, np.zeros(3)
         self.relinker.reset()
 
     # -- epoch -------------------------------------------------------------------------------
@@ -156,7 +156,7 @@ class GraphEstimator(NodeEstimator):
         self.P_loc = Rm @ self.smoother.marginalCovariance(X(n))[3:, 3:] @ Rm.T
         self.P_loc = 0.5 * (self.P_loc + self.P_loc.T)
         self.p_loc = self.pose.translation().copy()
-        self.p = self.p_loc.copy()
+        self.p, self._carry = self.p_loc + self._carry, np.zeros(3)
         self._info = np.linalg.inv(self.P_loc)
         self.my_ranges, self.range_rows = own_ranges(inp, self.uav, self._uav_ids)
         self.peer_ranges: dict[tuple[int, int], float] = {}
@@ -333,6 +333,8 @@ class GraphEstimator(NodeEstimator):
         g.add(gtsam.GPSFactor(X(self.n), z, gtsam.noiseModel.Gaussian.Information(Lr)))
         self.smoother.update(g, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
         self._read_estimate()
+        if self.tuning.round_warm_start:
+            self._carry = self.p - self.pose.translation()
         if self.report == "round":
             # the covariance of p (docs/estimators.md "Double counting"): p solves the round's normal
             # equations with the rounds' weights; its errors come from P_loc, the link noise and the
