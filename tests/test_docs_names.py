@@ -16,10 +16,13 @@ from __future__ import annotations
 import ast
 import pathlib
 import re
+import sys
 from functools import cache
 
+sys.path.insert(0, str(pathlib.Path(__file__).parent))
+from test_architecture import ROOTS, _modname  # noqa: E402  (one module-name mapping for both tests)
+
 REPO = pathlib.Path(__file__).resolve().parents[1]
-ROOTS = {"swarmnav": REPO / "shared" / "swarmnav", "services": REPO / "services", "deploy": REPO / "deploy"}
 DOCS = sorted(p for p in (REPO / "docs").glob("*.md") if p.name != "history.md") + [REPO / "README.md"]
 
 # spans that look like ``module.attr`` / ``Class.attr`` but are not code: -> why
@@ -39,14 +42,6 @@ EXTERNAL = {"CombinedImuFactor", "GPSFactor", "IncrementalFixedLagSmoother", "Ro
             "CongestionControl"}
 _FILE_SUFFIXES = (".json", ".json5", ".md", ".toml", ".parquet", ".npz", ".rrd", ".csv", ".yaml", ".log", ".pem",
                   ".png", ".jnl", ".lock", ".txt")
-
-
-def _modname(path: pathlib.Path) -> str:
-    for top, root in ROOTS.items():
-        if root in path.parents:
-            parts = [top, *path.relative_to(root).with_suffix("").parts]
-            return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
-    raise ValueError(path)
 
 
 @cache
