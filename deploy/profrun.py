@@ -3,6 +3,7 @@ a CPU-time clock (``time.process_time``; wall-clock profiles of 20 processes sha
 measure waiting). Usage: ``python -m deploy.profrun OUT.prof -m services.uav_node ARGS...``."""
 
 import cProfile
+import os
 import runpy
 import sys
 import time
@@ -13,7 +14,9 @@ def main() -> int:
     if dash_m != "-m":
         raise SystemExit("usage: python -m deploy.profrun OUT.prof -m MODULE ARGS...")
     sys.argv = [mod, *sys.argv[4:]]
-    pr = cProfile.Profile(time.process_time)
+    # SWARMNAV_PROFILE_CLOCK=thread: the main thread's CPU only (process_time also counts Zenoh's threads)
+    clock = time.thread_time if os.environ.get("SWARMNAV_PROFILE_CLOCK") == "thread" else time.process_time
+    pr = cProfile.Profile(clock)
     code = 0
     pr.enable()
     try:

@@ -257,7 +257,8 @@ class GraphEstimator(NodeEstimator):
         self.p = gauss_newton(self.p, lambda p: normal_equations(self.L, p, self._info, self.p_loc), self.gn_iters)
         self._links_ready = True
         self._last_state = NodeState(self.uav, self.k, r, self.t, self.p.copy(), self.P_loc.copy(), self.vel.copy(),
-                                     float(np.linalg.norm(self.p - p_prev)), quat=self._quat())
+                                     float(np.linalg.norm(self.p - p_prev)),
+                                     quat=self._last_state.quat)  # the attitude is the epoch's (begin_epoch)
         return self._last_state
 
     def _infl(self, o: int) -> float:

