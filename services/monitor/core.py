@@ -65,6 +65,9 @@ class MonitorCore:
         self.config_sha256 = config_sha256
         self.res = RunResult.empty(algo, seed, self.uavs, self.truth.t)
         self.links: list[tuple] = []
+        # the links of epochs not yet in the recording, by epoch (close_epochs draws them; scanning
+        # every link ever received at each close grew with the run: ~300 links per epoch)
+        self.links_to_draw: dict[int, list[tuple[int, int, int]]] = {}
         n = len(self.uavs)
         self.extra = {"wait_ms": np.full((self.K, n), np.nan), "bytes": np.full((self.K, n), np.nan)}
         self.inc = np.zeros((self.K, n), np.int64)
@@ -180,6 +183,8 @@ class MonitorCore:
             r.delta_l_m[i, j] = e.delta_l_m
         for li in e.links:
             self.links.append((m.k, m.uav, int(li.other), int(li.cls), float(li.residual_m), float(li.weight)))
+            if m.k > self.logged_k:
+                self.links_to_draw.setdefault(m.k, []).append((m.uav, int(li.other), int(li.cls)))
         self.extra["wait_ms"][i, j] = m.wait_ms
         self.extra["bytes"][i, j] = m.bytes_out
         self.inc[i, j] = m.inc
@@ -263,10 +268,7 @@ class MonitorCore:
             if m.any():
                 R.send_series(R.error_path(a, "pos_3d", "uav1"), t[sl][m], ks[m], np.linalg.norm(ep[m, j1], axis=1), rec=rec)
                 R.send_series(R.error_path(a, "pos_3sigma", "uav1"), t[sl][m], ks[m], 3 * np.sqrt(tr3[m, j1]), rec=rec)
-        by_k: dict[int, list] = {}
-        for k, u, o, c, *_ in self.links:
-            if lo < k <= hi:
-                by_k.setdefault(k, []).append((u, o, c))
+        by_k = {k: self.links_to_draw.pop(k) for k in list(self.links_to_draw) if k <= hi}
         segs, cls, counts = [], [], []
         for i, k in enumerate(ks):
             n = 0
