@@ -267,6 +267,7 @@ class Dataset:
 
     @classmethod
     def read(cls, path: str | Path) -> "Dataset":
+        import pyarrow as pa
         import pyarrow.parquet as pq
 
         path = Path(path)
@@ -284,12 +285,21 @@ class Dataset:
                 if name in OPTIONAL_TABLES:
                     continue
                 raise DatasetError(f"{path}: missing required table {name}.parquet")
-            t = pq.read_table(f)
-            missing = [c for c in cols if c not in t.column_names]
+            missing = [c for c in cols if c not in pq.read_schema(f).names]
             if missing:
                 raise DatasetError(f"{f}: missing columns {missing}")
-            tables[name] = {c: t.column(c).to_numpy().astype(np.int64 if c in INT_COLUMNS else np.float64) for c in cols}
+            tables[name] = _read_columns(pq, pa, f, cols)
         return cls(meta, tables)
+
+
+def _read_columns(pq, pa, f: Path, cols) -> dict[str, np.ndarray]:
+    """The columns of one parquet table as int64/float64 arrays, read one column at a time: the
+    Arrow copy of a column lives only while it is converted, and the freed buffers go back to the
+    OS (with the whole table at once the sensor-sim of a 1000 s paper run peaked at 565 MB)."""
+    out = {c: pq.read_table(f, columns=[c]).column(c).to_numpy().astype(np.int64 if c in INT_COLUMNS else np.float64)
+           for c in cols}
+    pa.default_memory_pool().release_unused()
+    return out
 
 
 # -- per-epoch view: what one UAV receives for epoch k ------------------------------------
@@ -352,12 +362,16 @@ class EpochSlicer:
         self.K = ds.meta.n_epochs()
         self.edges = np.array([ds.meta.epoch_time(k) for k in range(self.K + 1)])
         imu = ds.table("imu")
+        # per UAV its rows' indices (time order kept by the stable sort) and times; the samples are
+        # gathered per epoch, so the slicer holds no second copy of the IMU table (~110 MB on paper)
+        order = np.argsort(imu["node"], kind="stable")
+        sorted_nodes = imu["node"][order]
         self._imu = {}
         for u in self.uavs:
-            m = imu["node"] == u
-            t = imu["t"][m]
-            self._imu[u] = (t, np.column_stack([imu["gx"][m], imu["gy"][m], imu["gz"][m]]),
-                            np.column_stack([imu["ax"][m], imu["ay"][m], imu["az"][m]]))
+            rows = order[np.searchsorted(sorted_nodes, u, "left"):np.searchsorted(sorted_nodes, u, "right")]
+            self._imu[u] = (imu["t"][rows], rows)
+        self._gyro = (imu["gx"], imu["gy"], imu["gz"])
+        self._accel = (imu["ax"], imu["ay"], imu["az"])
         self._gnss = {}
         if "gnss" in ds.tables and len(ds.tables["gnss"]["t"]):
             g = ds.gnss_enu()
@@ -379,12 +393,15 @@ class EpochSlicer:
 
     def epoch(self, k: int, uav: int) -> EpochInput:
         t_prev, t = self.edges[k - 1], self.edges[k]
-        it, gy, ac = self._imu[uav]
+        it, rows = self._imu[uav]
         lo, hi = np.searchsorted(it, t_prev, "left"), np.searchsorted(it, t, "left")
         # the sample in force at t_prev (if it started earlier) is needed for the hold
         if lo > 0 and (lo == len(it) or it[lo] > t_prev):
             lo -= 1
-        inp = EpochInput(uav=uav, k=k, t=float(t), t_prev=float(t_prev), imu_t=it[lo:hi], gyro=gy[lo:hi], accel=ac[lo:hi])
+        sel = rows[lo:hi]
+        inp = EpochInput(uav=uav, k=k, t=float(t), t_prev=float(t_prev), imu_t=it[lo:hi],
+                         gyro=np.column_stack([c[sel] for c in self._gyro]),
+                         accel=np.column_stack([c[sel] for c in self._accel]))
         gi = self._gnss.get((k, uav))
         if gi is not None:
             g = self._g
