@@ -40,7 +40,8 @@ def error_figure(path: Path, t: np.ndarray, series: dict[str, np.ndarray], title
     axs[0].legend(loc="upper right", ncol=len(series), fontsize=8)
     axs[0].set_title(title)
     axs[-1].set_xlabel("time (s)")
-    fig.tight_layout()
+    # fixed margins for this layout (tight_layout measured every tick label: ~0.5 s per figure)
+    fig.subplots_adjust(left=0.08, right=0.985, top=0.955, bottom=0.065, hspace=0.08)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -69,7 +70,7 @@ def detection_figure(path: Path, t: np.ndarray, faulty: np.ndarray, tp: np.ndarr
     ax.set_xlabel("time (s)")
     ax.legend(fontsize=8)
     ax.grid(True, lw=0.3, which="both")
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.08, right=0.985, top=0.945, bottom=0.08, hspace=0.1)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
