@@ -255,6 +255,7 @@ def _run_tasks(tasks, settings: dict, jobs: int, ctx, n_epochs: int, quiet: bool
             log.info("%s seed %d: %.1f s wall", a, s, res.wall_s)
 
     if jobs == 1 or len(tasks) == 1:
+        _limit_threads()  # numpy may have been imported before OPENBLAS_NUM_THREADS was set
         _run_serial(tasks, settings, n_epochs, quiet, handle)
     else:
         _run_pool(tasks, jobs, ctx, n_epochs, quiet, handle)

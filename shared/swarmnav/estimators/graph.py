@@ -23,6 +23,8 @@ Epoch k (driven by ``swarmnav.protocol``):
     plus the range, az/el and tdoa factors to the neighbours, each neighbour's broadcast covariance
     × ``round_cov_inflation`` (a *weight*, tuned for accuracy; not in what the node reports); with
     ``round_warm_start`` the rounds start from p_loc + the last epoch's correction (fixed point unchanged).
+    ``round_solver = "joint"``: round 1 first solves the neighbourhood's joint snapshot from the
+    round-0 priors (``joint.py``, the rounds' fixed point at once), so one round suffices.
 ``end_epoch``
     commit once: the cooperative factors (own-observed ones only: the neighbours' bearings of this
     node stay in the rounds), linearised at the final round position, each neighbour's covariance ×
@@ -33,14 +35,10 @@ Epoch k (driven by ``swarmnav.protocol``):
     H⁻¹MH⁻¹ of the round's normal equations under the one-hop error model), velocity and attitude
     from the smoother.
 
-**Double counting** (docs/estimators.md "Double counting and the reported covariance"). Within an
-epoch every message a node uses is built from a neighbour's *epoch prior* (its broadcast: the
-smoother marginal before any of the epoch's cooperative information), so it holds none of the
-recipient's information of this epoch: the cavity of Gaussian belief propagation. The reported
-covariance is that of the reported estimate under this one-hop model (neighbour error = its epoch
-prior, independent of the own prior), whatever weights the rounds use. Across epochs the committed
-information is a federated share (a neighbour's prior split among its n links: covariance × n) and
-a fraction ``commit_weight`` of it is kept. Alternatives measured and removed: docs/estimators.md.
+**Double counting** (docs/estimators.md "Double counting and the reported covariance"): a node uses
+only its neighbours' *epoch priors* (the cavity of Gaussian belief propagation); the reported
+covariance is that of the reported estimate under this one-hop model; across epochs a federated
+share × ``commit_weight`` of the cooperative information is kept.
 """
 
 from __future__ import annotations
@@ -50,6 +48,7 @@ import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
 from . import detection as det
+from . import joint
 from ..dataset import DatasetMeta, EpochInput
 from ..models.altimeter import DEFAULT_SIGMA_M as DEFAULT_ALT_SIGMA
 from ..models.gnss import position_sigma
@@ -90,6 +89,7 @@ class GraphEstimator(NodeEstimator):
         self.use_azel, self.azel_weight, self.reverse_azel = t.use_azel, t.azel_weight, t.reverse_azel
         self.cov_infl = None if t.neighbour_cov_inflation == "links" else float(t.neighbour_cov_inflation)
         self.round_infl = t.round_cov_inflation  # None: as at commit
+        self.round_solver = t.round_solver  # "own": block-Jacobi rounds; "joint": joint.py in round 1
         self.hood_radius = t.neighbourhood_radius_m  # None: the whole swarm is every node's neighbourhood
         self.gn_iters, self.report, self.commit_weight = t.gn_iterations, t.report, t.commit_weight
         # K-means pool: fixed window if residual_window_epochs > 1, else adaptive (>= 16 residuals,
@@ -248,6 +248,9 @@ class GraphEstimator(NodeEstimator):
         # positions / covariances of every node in c.nodes order (own row: own last state)
         self.P_round = np.array([peers[u].pos if u != self.uav else self._last_state.pos for u in c.nodes])
         self.C_round = np.array([peers[u].pos_cov if u != self.uav else np.zeros((3, 3)) for u in c.nodes])
+        if self.round_solver == "joint" and r == 1:  # round 0's priors: solve the neighbourhood at once
+            self.P_round = joint.neighbourhood_snapshot(self, c, peers)
+            self.p = self.P_round[c.idx[self.uav]].copy()
         self.weights, self.res_own, dh, res = detect_links(self, c, self.P_round)
         if res is not None:
             self.delta_h, self._final_res = dh, res  # the residuals join the window at the epoch's end

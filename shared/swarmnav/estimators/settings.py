@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 # the defaults of detection.py and factors.py, repeated here so that loading a config never imports
 # gtsam (tests/test_settings.py holds them equal)
@@ -47,6 +47,8 @@ class EstimatorTuning(BaseModel):
     neighbour_cov_inflation: float | Literal["links"] = Field("links", description="neighbour covariance inflation at commit (× or per-sender link count)")
     neighbourhood_radius_m: float | None = Field(None, gt=0, description="a node reads the ranges of, and solves with, the UAVs it measured or that measured it, those within this distance of it (m), and the other ends of their ranges (None: every live UAV, the whole swarm)")
     round_cov_inflation: float | None = Field(0.5, description="neighbour covariance × this in the round solves (None: as at commit)")
+    round_solver: Literal["own", "joint"] = Field("own", description="the rounds: \"own\" = each node solves its own position against its neighbours' current ones (block Jacobi, ~9 rounds); \"joint\" = round 1 solves the neighbourhood's joint snapshot from the round-0 priors (joint.py), so rounds = 1 suffices")
+    joint_irls_passes: int = Field(2, ge=0, description="round_solver \"joint\": re-weighting passes of the double-threshold test (weights at the priors, then at each solution)")
     round_warm_start: bool = Field(False, description="start an epoch's rounds (and its round-0 broadcast) at the prior plus the last epoch's cooperative correction (round solution − smoother after the commit, m), near their fixed point; the solve's prior is unchanged")
     commit_weight: float = Field(0.3, ge=0, le=1, description="weight of the cooperative information committed to the smoother")
     report: Literal["round", "belief", "smoother"] = Field("round", description="the estimate reported: the last round's solution (with its sandwich covariance), the belief, or the smoother's")
@@ -104,6 +106,14 @@ class EstimatorTuning(BaseModel):
     fkf_neighbour_corr: Literal["split", "none"] = Field("split", description="correlation model of neighbour estimates")
     fkf_anchor_max_reject: int = Field(3, ge=0, description="consecutive anchor rejections before reset")
 
+    @model_validator(mode="after")
+    def _joint_needs_round0_priors(self):
+        # the joint snapshot takes each node's round-0 position as its epoch prior mean, which the
+        # warm start shifts by the last correction
+        if self.round_solver == "joint" and self.round_warm_start:
+            raise ValueError("round_solver = \"joint\" solves from the round-0 priors: set round_warm_start = false")
+        return self
+
 
 def tuning(settings: dict | None) -> EstimatorTuning:
     """The typed tuning of an estimator's settings dict: its tuning keys (the top level with the
@@ -132,7 +142,8 @@ def validate_tuning(table: dict | None) -> dict:
             near = difflib.get_close_matches(key, list(EstimatorTuning.model_fields), n=1)
             hint = f"did you mean {near[0]!r}? " if near else ""
             raise ValueError(f"unknown tuning key {key!r}: {hint}the keys are listed in docs/settings.md") from None
-        raise ValueError(f"{key}: {err['msg']}") from None
+        msg = err["msg"].removeprefix("Value error, ")
+        raise ValueError(f"{key}: {msg}" if err["loc"] else msg) from None
     return dict(table)
 
 

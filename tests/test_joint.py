@@ -1,0 +1,84 @@
+"""The neighbourhood's joint snapshot (estimators/joint.py, ``round_solver = "joint"``)."""
+
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+from swarmnav.estimators import joint
+from swarmnav.estimators.settings import validate_tuning
+from swarmnav.models.base import wrap_angle
+
+
+def _problem(seed: int, n: int = 7):
+    rng = np.random.default_rng(seed)
+    truth = rng.uniform([0, 0, 100], [300, 300, 200], (n, 3))
+    A = rng.normal(size=(n, 3, 3))
+    cov = np.einsum("nij,nkj->nik", A, A) * 0.05 + np.eye(3) * 0.02
+    mean = truth + np.einsum("nij,nj->ni", np.linalg.cholesky(cov), rng.normal(size=(n, 3)))
+    ia, ib = np.triu_indices(n, 1)
+    keep = rng.random(len(ia)) < 0.7
+    ia, ib = ia[keep], ib[keep]
+    d = np.linalg.norm(truth[ia] - truth[ib], axis=1) + rng.normal(0, 0.1, len(ia))
+    w = rng.uniform(0.2, 1.0, len(ia))
+    w[0] = 0.0  # an H0 link
+    obs, tgt = np.array([0, 1, 2, 3, 5]), np.array([1, 0, 4, 6, 2])
+    dv = truth[tgt] - truth[obs]
+    z = np.column_stack([np.arctan2(dv[:, 1], dv[:, 0]), np.arctan2(dv[:, 2], np.hypot(dv[:, 0], dv[:, 1]))])
+    z += rng.normal(0, 0.01, z.shape)
+    s2 = np.full(len(obs), 0.01 ** 2)
+    return truth, mean, np.linalg.inv(cov), ia, ib, d, w, (obs, tgt, z, s2)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_joint_solve_is_the_map_of_its_factor_graph(seed):
+    """Against an independent solver of the same cost (scipy least_squares on whitened residuals)."""
+    truth, mean, info, ia, ib, d, w, azel = _problem(seed)
+    obs, tgt, z, s2 = azel
+    n = len(mean)
+    aw = np.linspace(0.5, 1.0, len(obs))
+    Ls = np.linalg.cholesky(info)  # info = L Lᵀ: ‖Lᵀ(x − m)‖² = (x − m)ᵀ info (x − m)
+
+    def residuals(v):
+        x = v.reshape(n, 3)
+        pr = np.einsum("nji,nj->ni", Ls, x - mean).ravel()
+        r = np.linalg.norm(x[ia] - x[ib], axis=1)
+        rr = np.sqrt(w / 0.01) * (d - r)
+        dv = x[tgt] - x[obs]
+        az, el = np.arctan2(dv[:, 1], dv[:, 0]), np.arctan2(dv[:, 2], np.hypot(dv[:, 0], dv[:, 1]))
+        ra = np.sqrt(aw / s2)[:, None] * np.column_stack([wrap_angle(z[:, 0] - az), z[:, 1] - el])
+        return np.concatenate([pr, rr, ra.ravel()])
+
+    ref = least_squares(residuals, mean.ravel(), xtol=1e-14, ftol=1e-14, gtol=1e-14).x.reshape(n, 3)
+    got = joint.solve(mean, info, ia, ib, d, w, 0.01, azel, mean, iterations=20, tol_m=1e-10, azel_w=aw)
+    assert np.abs(got - ref).max() < 1e-6
+    # and it is better than the priors
+    assert np.sqrt(np.mean((got - truth) ** 2)) < np.sqrt(np.mean((mean - truth) ** 2))
+
+
+def test_joint_snapshot_is_the_fixed_point_of_each_nodes_own_solve():
+    """At the joint MAP every node's own-position problem (neighbours fixed there) is solved: its
+    gradient vanishes — what the block-Jacobi rounds converge to, reached in one round."""
+    truth, mean, info, ia, ib, d, w, azel = _problem(4)
+    x = joint.snapshot(mean, info, ia, ib, d, 0.01, azel, lambda p: w, passes=0)
+    x = joint.solve(mean, info, ia, ib, d, w, 0.01, azel, x, iterations=20, tol_m=1e-12)
+    for i in range(len(x)):  # numerical gradient of the whole cost w.r.t. node i's position only
+        def cost(p):
+            y = x.copy()
+            y[i] = p
+            c = (y - mean)[:, None, :] @ info @ (y - mean)[:, :, None]
+            r = d - np.linalg.norm(y[ia] - y[ib], axis=1)
+            obs, tgt, z, s2 = azel
+            dv = y[tgt] - y[obs]
+            ra = np.column_stack([wrap_angle(z[:, 0] - np.arctan2(dv[:, 1], dv[:, 0])),
+                                  z[:, 1] - np.arctan2(dv[:, 2], np.hypot(dv[:, 0], dv[:, 1]))])
+            return 0.5 * (c.sum() + np.sum(w * r * r) / 0.01 + np.sum(ra * ra / s2[:, None]))
+        g = [(cost(x[i] + e) - cost(x[i] - e)) / 2e-6 for e in np.eye(3) * 1e-6]
+        assert np.abs(g).max() < 1e-3, (i, g)
+
+
+def test_joint_needs_the_round0_priors():
+    with pytest.raises(ValueError, match="round_warm_start = false"):
+        validate_tuning({"round_solver": "joint", "round_warm_start": True})
+    with pytest.raises(ValueError, match="round_solver"):
+        validate_tuning({"round_solver": "jacobi"})
+    assert validate_tuning({"round_solver": "joint"}) == {"round_solver": "joint"}
