@@ -48,6 +48,7 @@ class EstimatorTuning(BaseModel):
     neighbourhood_radius_m: float | None = Field(None, gt=0, description="a node reads the ranges of, and solves with, the UAVs it measured or that measured it, those within this distance of it (m), and the other ends of their ranges (None: every live UAV, the whole swarm)")
     round_cov_inflation: float | None = Field(0.5, description="neighbour covariance × this in the round solves (None: as at commit)")
     round_warm_start: bool = Field(False, description="start an epoch's rounds (and its round-0 broadcast) at the prior plus the last epoch's cooperative correction (round solution − smoother after the commit, m), near their fixed point; the solve's prior is unchanged")
+    range_memory_epochs: int = Field(0, ge=0, description="range memory: the clean (H2) ranges of this many past epochs, moved to the epoch by the two UAVs' velocity-integrated displacements (transport variance estimated online from the node's own ranges), as extra range rows (weight 1 − commit_weight) of the reported solve; rounds, broadcasts and commit unchanged (0: off; range_memory.py)")
     commit_weight: float = Field(0.3, ge=0, le=1, description="weight of the cooperative information committed to the smoother")
     report: Literal["round", "belief", "smoother"] = Field("round", description="the estimate reported: the last round's solution (with its sandwich covariance), the belief, or the smoother's")
     # -- smoother -------------------------------------------------------------------------------
