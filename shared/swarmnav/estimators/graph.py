@@ -31,7 +31,8 @@ Epoch k (driven by ``swarmnav.protocol``):
     or, with ``relink_s`` > 0, the relinked commit (``relink.py``). NodeEstimate (default ``report =
     "round"``): position = the last round's solution p, pos_cov = the covariance of p (the sandwich
     H⁻¹MH⁻¹ of the round's normal equations under the one-hop error model), velocity and attitude
-    from the smoother.
+    from the smoother; with ``range_memory_epochs`` > 0 the reported solve adds the node's moved
+    ranges of past epochs (``range_memory.py``).
 
 **Double counting** (docs/estimators.md "Double counting and the reported covariance"). Within an
 epoch every message a node uses is built from a neighbour's *epoch prior* (its broadcast: the
