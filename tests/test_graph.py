@@ -755,3 +755,128 @@ def test_round_sandwich_covariance(seed):
     steps = np.linalg.solve(H, g.T).T
     emp = np.cov(steps.T)
     np.testing.assert_allclose(emp, cov, rtol=0.06, atol=0.03 * np.sqrt(np.outer(np.diag(cov), np.diag(cov))).max())
+
+
+# -- range memory (range_memory.py; docs/estimators.md "Range memory") ----------------------------
+
+
+def test_range_memory_off_by_default(noiseless):
+    """range_memory_epochs defaults to 0: no memory object, so every config without the key runs the
+    estimators exactly as before (tests/test_golden.py holds them bit-identical)."""
+    from swarmnav.estimators.range_memory import RangeMemory
+    from swarmnav.estimators.settings import EstimatorTuning
+
+    assert EstimatorTuning().range_memory_epochs == 0
+    sc, ds = noiseless
+    init = initial_states(ds, 3)
+    u = ds.meta.uav_ids()[0]
+    assert AtvfgEstimator(u, ds.meta, _settings(sc), init[u]).mem is None
+    on = AtvfgEstimator(u, ds.meta, _settings(sc, graph={"range_memory_epochs": 1, "commit_weight": 0.2}), init[u])
+    assert isinstance(on.mem, RangeMemory) and on.mem.weight == pytest.approx(0.8)
+
+
+def _memory_node(k, t, x, v, lev, uav=0):
+    """A stand-in for the graph node the memory reads: node ``uav`` ranging the others at epoch k,
+    positions x (id -> (3,)), noise-free ranges between the tags (own offset ``lev``)."""
+    from types import SimpleNamespace
+
+    from swarmnav.estimators.rounds import RoundCache
+
+    others = sorted(o for o in x if o != uav)
+    nodes = sorted(x)
+    idx = {u: i for i, u in enumerate(nodes)}
+    c = RoundCache(key=(), k=k, nodes=nodes, idx=idx, pairs=None, mine=[], mine_other=[], nb=others,
+                   rng_owner=np.array(others), rng_node=np.array([idx[o] for o in others]))
+    c.rng_lever = np.array([lev] * len(others))
+    c.rng_sig2 = np.full(len(others), 0.01)
+    c.rng_z = np.array([np.linalg.norm(x[uav] + lev - x[o]) for o in others])
+    P = np.array([x[u] for u in nodes])
+    C = np.array([np.diag([0.04, 0.05, 0.09]) * (1 + i) for i in range(len(nodes))])
+    node = SimpleNamespace(k=k, uav=uav, cache=c, weights={o: 1.0 for o in others}, P_round=P, C_round=C,
+                           _links_ready=True)
+    peers = {o: NodeState(o, k, 0, t, x[o].copy(), C[idx[o]], v[o].copy()) for o in others}
+    own = NodeState(uav, k, 0, t, x[uav].copy(), np.eye(3), v[uav].copy())
+    return node, peers, own
+
+
+def test_range_memory_moved_rows_exact_and_jacobian():
+    """Noise-free ranges of UAVs at constant acceleration: the velocity-integrated (trapezoid)
+    displacements are exact, the estimated transport variance is 0, every moved row's residual at
+    the true positions of the current epoch is 0, and the rounds' normal equations of the moved
+    rows (rounds.normal_equations) match finite differences of their cost."""
+    from swarmnav.estimators.range_memory import MIN_SAMPLES, RangeMemory
+    from swarmnav.estimators.rounds import Links, normal_equations
+
+    rng = np.random.default_rng(7)
+    ids = [0, 1, 2, 3]
+    x0 = {u: rng.normal(0, 50, 3) for u in ids}
+    v0 = {u: rng.normal(0, 10, 3) for u in ids}
+    a = {u: rng.normal(0, 0.5, 3) for u in ids}
+    lev = np.array([0.1, -0.05, 0.2])
+    mem = RangeMemory(1, 0.8)
+    for k in range(1, 40):
+        t = float(k)
+        x = {u: x0[u] + v0[u] * t + 0.5 * a[u] * t * t for u in ids}
+        v = {u: v0[u] + a[u] * t for u in ids}
+        node, peers, own = _memory_node(k, t, x, v, lev)
+        mem.begin(node, peers, own)
+        if mem.rows is not None:
+            owners, levm, sig2, z = mem.rows
+            assert (k - 1) * 3 >= MIN_SAMPLES  # used once enough samples are pooled
+            assert mem.q_hat(1) == 0.0 and np.allclose(sig2, 0.01)
+            h = np.linalg.norm(x[0] + levm - np.array([x[o] for o in owners]), axis=1)
+            np.testing.assert_allclose(z - h, 0.0, atol=1e-9)
+            # the moved rows appended to the round's links; their Jacobians against finite differences
+            cur = Links(rng=(node.P_round[node.cache.rng_node], node.C_round[node.cache.rng_node] * 0.1,
+                             np.ones(3), node.cache.rng_lever, node.cache.rng_sig2, node.cache.rng_z))
+            L = mem.extend(node, cur, 0.1)
+            assert len(L.rng[5]) == 6 and L.rng_group.tolist() == [1, 2, 3, 1, 2, 3]
+            np.testing.assert_allclose(L.rng[2], [1, 1, 1, 0.8, 0.8, 0.8])
+            p0 = x[0] + rng.normal(0, 0.5, 3)
+            info = np.diag([2.0, 3.0, 1.0])
+            p_loc = p0 + rng.normal(0, 0.3, 3)
+            H, g = normal_equations(L, p0, info, p_loc)
+            Ld = {"rng": L.rng, "azel": (np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0), np.zeros((0, 2)))}
+            hh = 1e-5
+            num_g = np.array([(_frozen_cost(p0 + hh * e, p0, p_loc, info, Ld) - _frozen_cost(p0 - hh * e, p0, p_loc, info, Ld))
+                              / (2 * hh) for e in np.eye(3)])
+            np.testing.assert_allclose(g, -num_g, rtol=1e-5, atol=1e-6 * max(1.0, np.abs(g).max()))
+            J = np.column_stack([(_whitened_residuals(p0 + hh * e, p0, Ld) - _whitened_residuals(p0 - hh * e, p0, Ld)) / (2 * hh)
+                                 for e in np.eye(3)])
+            np.testing.assert_allclose(H, J.T @ J + info, rtol=1e-5, atol=1e-6 * np.abs(H).max())
+        mem.push(node)
+    assert mem.rows is not None
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_grouped_range_meat(seed):
+    """rounds.grouped_range_meat: the covariance of g = Σ a·u·(v + uᵀe_group) for range rows whose
+    neighbour error e is shared within a group (the moved rows of a neighbour and its current row):
+    equal to the per-row meat with one row per group, and to a Monte Carlo with shared errors."""
+    from swarmnav.estimators.rounds import grouped_range_meat
+
+    rng = np.random.default_rng(seed)
+    n = 6
+    u = rng.normal(0, 1, (n, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    a = rng.uniform(5, 50, n)
+    sig2 = rng.uniform(0.005, 0.03, n)
+    A = rng.normal(0, 0.3, (3, 3, 3))
+    Pg = A @ A.transpose(0, 2, 1) + 0.01 * np.eye(3)
+    group = np.array([4, 7, 9, 4, 7, 4])
+    gi = {4: 0, 7: 1, 9: 2}
+    P = np.array([Pg[gi[g]] for g in group])
+    # one row per group: the per-row formula Σ a²(σ² + uᵀPu) uuᵀ
+    single = grouped_range_meat(u, a, sig2, P, np.arange(n))
+    per_row = (u * (a * a * (sig2 + np.einsum("ni,nij,nj->n", u, P, u)))[:, None]).T @ u
+    np.testing.assert_allclose(single, per_row, rtol=1e-12)
+    meat = grouped_range_meat(u, a, sig2, P, group)
+    m = 100000
+    e = {g: rng.multivariate_normal(np.zeros(3), Pg[i], m) for g, i in gi.items()}
+    gsum = np.zeros((m, 3))
+    for r in range(n):
+        eps = rng.normal(0, np.sqrt(sig2[r]), m) + e[group[r]] @ u[r]
+        gsum += (a[r] * eps)[:, None] * u[r]
+    emp = np.cov(gsum.T)
+    np.testing.assert_allclose(emp, meat, rtol=0.05, atol=0.02 * np.abs(meat).max())
+    assert not np.allclose(meat, grouped_range_meat(u, a, sig2, P, np.arange(n)), rtol=0.05)

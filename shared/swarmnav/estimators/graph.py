@@ -33,7 +33,8 @@ Epoch k (driven by ``swarmnav.protocol``):
     or, with ``relink_s`` > 0, the relinked commit (``relink.py``). NodeEstimate (default ``report =
     "round"``): position = the last round's solution p, pos_cov = the covariance of p (the sandwich
     H⁻¹MH⁻¹ of the round's normal equations under the one-hop error model), velocity and attitude
-    from the smoother.
+    from the smoother; with ``range_memory_epochs`` > 0 the reported solve adds the node's moved
+    ranges of past epochs (``range_memory.py``).
 
 **Double counting** (docs/estimators.md "Double counting and the reported covariance"): a node uses
 only its neighbours' *epoch priors* (the cavity of Gaussian belief propagation); the reported
@@ -58,6 +59,7 @@ from .factors import altitude_factor
 from .graph_links import detect_links, own_bearings, own_hood, own_ranges, rot3, round_cache, take_round0, tdoa_weights
 from .imu import InitialRest, preintegrate
 from .own_factors import DRAG_KEY, OwnFactors
+from .range_memory import RangeMemory
 from .relink import RelinkedCommit
 from .restart import ATT_SIGMA_RAD, restart_position, restart_velocity
 from .rounds import gauss_newton, normal_equations, prepare_links, sandwich_cov
@@ -118,6 +120,8 @@ class GraphEstimator(NodeEstimator):
         self.use_tdoa, self.tdoa_detection = t.use_tdoa, t.tdoa_detection
         self.relinker = RelinkedCommit(t, est, float(meta.epoch_dt_s), self.lag, self.detect)
         self.relink = self.relinker.epochs
+        # between-UAV memory across epochs (range_memory.py; None: off)
+        self.mem = RangeMemory(t.range_memory_epochs, 1.0 - t.commit_weight) if t.range_memory_epochs > 0 else None
         imu = node.imu
         self.bias_sigmas = np.r_[[max(imu.accel_bias_sigma, 1e-4)] * 3, [max(imu.gyro_bias_sigma, 1e-6)] * 3]
         self._reset(init.t, init.pos, init.vel, init.quat, np.asarray(init.pos_sigma, float),
@@ -138,6 +142,8 @@ class GraphEstimator(NodeEstimator):
         # _carry (round_warm_start): the last epoch's round solution − the smoother after the commit (ENU m)
         self.p, self._v_pred, self._links_ready, self._carry = self.p_loc.copy(), self.vel.copy(), False, np.zeros(3)
         self.relinker.reset()
+        if getattr(self, "mem", None) is not None:
+            self.mem.reset()
 
     # -- epoch -------------------------------------------------------------------------------
 
@@ -255,6 +261,8 @@ class GraphEstimator(NodeEstimator):
         if res is not None:
             self.delta_h, self._final_res = dh, res  # the residuals join the window at the epoch's end
         self.tdoa_w = tdoa_weights(self, c, self.P_round)
+        if self.mem is not None and self.mem.k != self.k:
+            self.mem.begin(self, peers, self._last_state)  # first round: peers are round-0 states
         self.L = self._links(self.round_infl)
         p_prev = self.p.copy()
         self.p = gauss_newton(self.p, lambda p: normal_equations(self.L, p, self._info, self.p_loc), self.gn_iters)
@@ -301,6 +309,8 @@ class GraphEstimator(NodeEstimator):
         pos_cov, pos = self.P_loc, None
         if self.cooperative and self._links_ready:
             pos, pos_cov = self._commit(pos_cov)
+            if self.mem is not None:
+                self.mem.push(self)
             for o in self.cache.nb:
                 res, cls = self.res_own.get(o, (float("nan"), int(LinkClass.H2_NORMAL)))
                 links.append(LinkInfo(o, LinkClass(cls), res, float(self.weights[o])))
@@ -343,6 +353,8 @@ class GraphEstimator(NodeEstimator):
             # the covariance of p (docs/estimators.md "Double counting"): p solves the round's normal
             # equations with the rounds' weights; its errors come from P_loc, the link noise and the
             # neighbours' epoch priors (× 1) — linearised, Cov(p) = H⁻¹MH⁻¹
+            if self.mem is not None and self.mem.rows is not None:
+                return self.mem.report(self)  # the reported solve with the moved rows (range_memory.py)
             H, _, M = normal_equations(self.L, self.p, self._info, self.p_loc, L_true=self._links(1.0))
             return self.p.copy(), sandwich_cov(H, M)
         if self.report == "belief":

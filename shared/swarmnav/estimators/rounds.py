@@ -66,11 +66,14 @@ class RoundCache:
 class Links:
     """The active links of one solve. ``rng`` = (p_j, P_j, w, lever, σ², z) and ``azel`` = (p_t,
     P_t, w, σ², z), arrays over the links, or None; ``tdoa`` = [(ends, z, σ², w)] with ends
-    (kind, position, covariance)."""
+    (kind, position, covariance). ``rng_group`` (None: one row per neighbour, as without the range
+    memory): each range row's neighbour index; rows of one neighbour share its position error in
+    the sandwich (range_memory.py)."""
 
     rng: tuple | None = None
     azel: tuple | None = None
     tdoa: list = field(default_factory=list)
+    rng_group: np.ndarray | None = None
 
 
 def prepare_links(c: RoundCache, P: np.ndarray, C: np.ndarray, weights: dict[int, float], tdoa_w: np.ndarray,
@@ -124,8 +127,10 @@ def normal_equations(L: Links, p: np.ndarray, info: np.ndarray | None = None, p_
         a = w / var
         H += (u * a[:, None]).T @ u
         gv += u.T @ (a * (z - rr))
-        if L_true is not None:
+        if L_true is not None and L.rng_group is None:
             meat += (u * (a * a * variance_with_peer(sig2, u, L_true.rng[1]))[:, None]).T @ u
+        elif L_true is not None:
+            meat += grouped_range_meat(u, a, sig2, L_true.rng[1], L.rng_group)
     if L.azel is not None:
         pt, Pt, wt, st2, z = L.azel
         az, el, Jt = azel_jacobians(pt - p)
@@ -161,6 +166,16 @@ def inv2(C: np.ndarray) -> np.ndarray:
     out = np.empty_like(C)
     out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = d / det, -b / det, -c / det, a / det
     return out
+
+
+def grouped_range_meat(u: np.ndarray, a: np.ndarray, sig2: np.ndarray, P: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """Σ a²σ² uuᵀ + Σ_groups G P G, G = Σ_group a uuᵀ: the sandwich meat of range rows whose
+    neighbour-position error is shared within a group (P: each row's neighbour covariance)."""
+    meat = (u * (a * a * sig2)[:, None]).T @ u
+    _, first, inv = np.unique(group, return_index=True, return_inverse=True)
+    G = np.zeros((len(first), 3, 3))
+    np.add.at(G, inv, a[:, None, None] * u[:, :, None] * u[:, None, :])
+    return meat + np.einsum("gij,gjk,gkl->il", G, P[first], G)
 
 
 def gauss_newton(p: np.ndarray, normal_eq: Callable[[np.ndarray], tuple], iterations: int) -> np.ndarray:
