@@ -247,9 +247,9 @@ def test_initial_rest_detector_ends_on_smooth_acceleration():
     u = ds.meta.uav_ids()[0]
     init = initial_states(ds, 1)[u]
     moving = InsEstimator(u, ds.meta, _settings(sc), dataclasses.replace(init, vel=np.array([5.0, 0, 0]), vel_sigma=0.1))
-    assert not moving._at_rest  # a node that starts moving never gets the prior
+    assert not moving._rest.active  # a node that starts moving never gets the prior
     est = InsEstimator(u, ds.meta, _settings(sc), dataclasses.replace(init, vel=np.zeros(3), vel_sigma=0.05))
-    assert est._at_rest
+    assert est._rest.active
     g0 = float(np.linalg.norm(est.params.n_gravity))
     rng = np.random.default_rng(0)
 
@@ -262,7 +262,7 @@ def test_initial_rest_detector_ends_on_smooth_acceleration():
     # 0.2 m/s² forward: ~0.002 m/s² change of |f|, no spread; caught by the velocity integral
     still = [est._rest.update(epoch(k, 0.2)) for k in (4, 5)]
     assert still == [False, False] or still == [True, False]
-    assert not est._at_rest and not est._rest.update(epoch(6, 0.0))  # over for good
+    assert not est._rest.active and not est._rest.update(epoch(6, 0.0))  # over for good
 
 
 def test_anchor_range_time_shift_moves_anchor_by_velocity():
@@ -313,7 +313,7 @@ def _drag_setup(sc=None):
         if node.id == u:
             node.airframe = "multirotor"
     est = InsEstimator(u, meta, _settings(sc), dataclasses.replace(initial_states(ds, 1)[u], vel=np.array([3.0, 0, 0])))
-    assert est.drag and not est._at_rest
+    assert est.drag and not est._rest.active
     f = np.array([0.3, -0.2, 9.8])
     inp = EpochInput(u, 1, 1.1, 1.0, 1.0 + np.arange(10) * 0.01, np.zeros((10, 3)), np.tile(f, (10, 1)))
     return est, inp, f
@@ -327,7 +327,7 @@ def test_drag_factor_residual_and_jacobians():
 
     est, inp, f = _drag_setup()
     g = gtsam.NonlinearFactorGraph()
-    m0 = est.own.add_drag(g, (X(1), V(1), B(1)), inp, est._at_rest)
+    m0 = est.own.add_drag(g, (X(1), V(1), B(1)), inp, est._rest.active)
     assert m0 is not None and g.size() == 2  # prior on M (first call) + the drag factor
     fac = g.at(1)
     rng = np.random.default_rng(3)

@@ -62,7 +62,7 @@ from .own_factors import DRAG_KEY, OwnFactors
 from .range_memory import RangeMemory
 from .relink import RelinkedCommit
 from .restart import ATT_SIGMA_RAD, restart_position, restart_velocity
-from .rounds import gauss_newton, normal_equations, prepare_links, sandwich_cov
+from .rounds import gauss_newton, normal_equations, one_hop_belief, prepare_links, sandwich_cov
 from .smoother import floored_params, new_smoother
 from .settings import tuning
 
@@ -91,7 +91,7 @@ class GraphEstimator(NodeEstimator):
         self.use_azel, self.azel_weight, self.reverse_azel = t.use_azel, t.azel_weight, t.reverse_azel
         self.cov_infl = None if t.neighbour_cov_inflation == "links" else float(t.neighbour_cov_inflation)
         self.round_infl = t.round_cov_inflation  # None: as at commit
-        self.round_solver = t.round_solver  # "own": block-Jacobi rounds; "joint": joint.py in round 1
+        self.round_solver, self.joint_passes = t.round_solver, t.joint_irls_passes  # "joint": joint.py in round 1
         self.hood_radius = t.neighbourhood_radius_m  # None: the whole swarm is every node's neighbourhood
         self.gn_iters, self.report, self.commit_weight = t.gn_iterations, t.report, t.commit_weight
         # K-means pool: fixed window if residual_window_epochs > 1, else adaptive (>= 16 residuals,
@@ -206,7 +206,7 @@ class GraphEstimator(NodeEstimator):
             ts.insert((k, inp.t))
         if self.drag:
             drag_in_smoother = not self.own.drag_new  # before add_drag: it may create the state
-            m0 = self.own.add_drag(g, (key, V(n), B(n)), inp, self._at_rest)
+            m0 = self.own.add_drag(g, (key, V(n), B(n)), inp, self._rest.active)
             if m0 is not None:
                 v.insert(DRAG_KEY, m0)
             if m0 is not None or drag_in_smoother:
@@ -233,11 +233,6 @@ class GraphEstimator(NodeEstimator):
     def _quat(self) -> np.ndarray:
         q = self.pose.rotation().toQuaternion()
         return np.array([q.w(), q.x(), q.y(), q.z()])
-
-    @property
-    def _at_rest(self) -> bool:
-        """In the initial rest phase (imu.InitialRest)."""
-        return self._rest.active
 
     # -- rounds ------------------------------------------------------------------------------
 
@@ -273,17 +268,14 @@ class GraphEstimator(NodeEstimator):
         return self._last_state
 
     def _infl(self, o: int) -> float:
-        """Covariance inflation of neighbour o's broadcast (double-counting remedy): by default the
-        number of links o fused this epoch (its round-0 link count: ranged neighbours + tdoa
-        links), as in split covariance intersection — each of o's n links may carry information
-        that is also in ours."""
+        """Covariance inflation of neighbour o's broadcast: by default the number of links o fused this
+        epoch (its round-0 link count), as in split covariance intersection."""
         if self.cov_infl is not None:
             return self.cov_infl
         return float(max(1, self.peer_links.get(o, 1)))
 
     def commit_azel(self, c) -> int | None:
-        """How many of ``c``'s az/el rows are committed: the own observations only, unless
-        ``reverse_azel`` = "commit" (None: all)."""
+        """How many of ``c``'s az/el rows are committed: the own ones, unless ``reverse_azel`` = "commit" (None: all)."""
         return c.n_own_azel if self.reverse_azel != "commit" else None
 
     def _links(self, infl: float | None, commit: bool = False):
@@ -291,16 +283,6 @@ class GraphEstimator(NodeEstimator):
         return prepare_links(self.cache, self.P_round, self.C_round, self.weights, self.tdoa_w,
                              self._infl if infl is None else infl, self.azel_weight,
                              self.commit_azel(self.cache) if commit else None)
-
-    def _belief(self) -> tuple[np.ndarray, np.ndarray]:
-        """The Gaussian-BP belief after one message exchange from the epoch priors (docs/estimators.md
-        "Double counting"): each message the link factor marginalised over the neighbour's epoch
-        prior, linearised at its last round position. Returns the mean (Gauss-Newton from the last
-        round's solution) and the covariance, the inverse Hessian at that mean."""
-        L = self._links(1.0)
-        p = gauss_newton(self.p, lambda q: normal_equations(L, q, self._info, self.p_loc), self.gn_iters)
-        H = normal_equations(L, p, self._info, self.p_loc)[0]
-        return p, np.linalg.inv(0.5 * (H + H.T))
 
     # -- end ---------------------------------------------------------------------------------
 
@@ -358,7 +340,7 @@ class GraphEstimator(NodeEstimator):
             H, _, M = normal_equations(self.L, self.p, self._info, self.p_loc, L_true=self._links(1.0))
             return self.p.copy(), sandwich_cov(H, M)
         if self.report == "belief":
-            return self._belief()
+            return one_hop_belief(self._links(1.0), self.p, self._info, self.p_loc, self.gn_iters)
         return None, np.linalg.inv(self._info + Lam)  # "smoother": its position and this
 
     # -- restart -----------------------------------------------------------------------------

@@ -143,4 +143,4 @@ def neighbourhood_snapshot(node: Any, c, peers: dict) -> np.ndarray:
                           node.ceil_factor, node.cap_h1)[2]
 
     return snapshot(mean, info, pairs.ia, pairs.ib, pairs.d, node.uwb_sigma ** 2, azel, weigh,
-                    node.tuning.joint_irls_passes, azel_follows_range=node.azel_weight == "range")
+                    node.joint_passes, azel_follows_range=node.azel_weight == "range")

@@ -193,6 +193,17 @@ def gauss_newton(p: np.ndarray, normal_eq: Callable[[np.ndarray], tuple], iterat
     return p
 
 
+def one_hop_belief(L: Links, p0: np.ndarray, info: np.ndarray, p_loc: np.ndarray, iterations: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The Gaussian-BP belief after one message exchange from the epoch priors (report "belief",
+    docs/estimators.md "Double counting"): links ``L`` with the neighbours' epoch-prior covariances,
+    linearised at their last round positions. The mean (Gauss-Newton from p0) and the inverse
+    Hessian there."""
+    p = gauss_newton(p0, lambda q: normal_equations(L, q, info, p_loc), iterations)
+    H = normal_equations(L, p, info, p_loc)[0]
+    return p, np.linalg.inv(0.5 * (H + H.T))
+
+
 def sandwich_cov(H: np.ndarray, M: np.ndarray) -> np.ndarray:
     """H⁻¹MH⁻¹ (H symmetrised)."""
     Hi = np.linalg.inv(0.5 * (H + H.T))
