@@ -262,9 +262,10 @@ class GraphEstimator(NodeEstimator):
         p_prev = self.p.copy()
         self.p = gauss_newton(self.p, lambda p: normal_equations(self.L, p, self._info, self.p_loc), self.gn_iters)
         self._links_ready = True
+        # a joint round 1 is the rounds' fixed point: it reports no change left, so the swarm stops there
+        delta = 0.0 if self.round_solver == "joint" and r == 1 else float(np.linalg.norm(self.p - p_prev))
         self._last_state = NodeState(self.uav, self.k, r, self.t, self.p.copy(), self.P_loc.copy(), self.vel.copy(),
-                                     float(np.linalg.norm(self.p - p_prev)),
-                                     quat=self._last_state.quat)  # the attitude is the epoch's (begin_epoch)
+                                     delta, quat=self._last_state.quat)  # the attitude is the epoch's (begin_epoch)
         return self._last_state
 
     def _infl(self, o: int) -> float:
