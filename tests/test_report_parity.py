@@ -205,6 +205,16 @@ def test_smoke_launch_and_evaluate_give_the_same_report(tmp_path):
     assert la["complete"] is True
 
 
+@pytest.mark.integration
+def test_paper_rounds_launch_and_evaluate_give_the_same_report(tmp_path):
+    """paper.toml's rounds (round_solver "joint": one round from the round-0 priors, the range
+    memory) over 18 real UAV processes, 20 s: the same report as in-process."""
+    ev, la = _pair(["--config", str(REPO / "configs" / "paper.toml"), "--set", "scenario.duration_s=20"], 1001, tmp_path)
+    _assert_parity(ev, la)
+    assert la["complete"] is True
+    assert ev["algorithms"]["atvfg"]["rounds_mean"] == 1.0
+
+
 def _miluv_slice(out: Path, seconds: float) -> None:
     """The first ``seconds`` of the imported MILUV flight as a dataset."""
     from services.importers.miluv import convert
