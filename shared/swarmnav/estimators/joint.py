@@ -22,8 +22,7 @@ from typing import Any
 import numpy as np
 
 from . import detection as det
-from ..models.base import wrap_angle
-from ..models.bearing import azel_jacobians
+from ..models.bearing import azel_jacobians, azel_residuals
 
 
 def azel_observations(nodes: list[int], states: dict, own_uav: int, own_bearings: dict
@@ -83,9 +82,7 @@ def solve(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np
             g += ea @ gb - eb @ gb
         if len(obs):
             az, el, J = azel_jacobians(x[tgt] - x[obs])  # J = ∂(az, el)/∂p_tgt = −∂/∂p_obs
-            res = np.empty((len(az), 2))
-            res[:, 0] = wrap_angle(z[:, 0] - az)
-            res[:, 1] = z[:, 1] - el
+            res = azel_residuals(z, az, el)
             B = np.einsum("mki,mkj->mij", J, J) / s2[:, None, None]
             gj = np.einsum("mki,mk->mi", J, res) / s2[:, None]
             Hb[nodes, nodes] += ((eo + et) @ B.reshape(-1, 9)).reshape(n, 3, 3)
