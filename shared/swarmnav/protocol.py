@@ -7,7 +7,9 @@ service both drive this generator, so with synchronous rounds they compute the s
 
 Round structure (docs/architecture.md): round 0 = predicted state (+ own ranges); round r = 1..R uses the
 neighbours' round r-1 states. Convergence is decided swarm-wide from the round's states, which
-every node receives, so every node stops after the same round.
+every node receives, so every node stops after the same round; an estimator whose last round is
+known in advance (``last_round``: the joint snapshot's round 1) does not broadcast that round's
+state, so an epoch is then one message round.
 
 Pure: the core reads no clock. A caller that wants the estimator's time per epoch passes its clock.
 """
@@ -46,11 +48,14 @@ def node_epoch(est: NodeEstimator, inp: EpochInput, rounds: int, tol_m: float,
     busy += clock() - t0
     peers = yield state
     done = 0
+    last = est.last_round()
     for r in range(1, rounds + 1):
         t0 = clock()
         state = est.iterate(r, peers)
         busy += clock() - t0
         done = r
+        if r == last:  # every node ends here: a state nobody reads is not sent
+            break
         peers = yield state
         if swarm_converged(state, peers, tol_m):
             break

@@ -131,6 +131,12 @@ class NodeEstimator(abc.ABC):
         s = self._last_state
         return NodeState(self.uav, s.k, r, s.t, s.pos, s.pos_cov, s.vel, 0.0)
 
+    def last_round(self) -> int | None:
+        """The round after which every node of the swarm ends the epoch, known before it is run
+        (the same for every node of a configuration), so that round's state is not broadcast:
+        nobody would read it. None: the swarm decides after each round whether it converged."""
+        return None
+
     @abc.abstractmethod
     def end_epoch(self) -> NodeEstimate: ...
 

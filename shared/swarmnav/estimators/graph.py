@@ -122,8 +122,7 @@ class GraphEstimator(NodeEstimator):
         self.relink = self.relinker.epochs
         # between-UAV memory across epochs (range_memory.py; None: off)
         self.mem = RangeMemory(t.range_memory_epochs, 1.0 - t.commit_weight) if t.range_memory_epochs > 0 else None
-        imu = node.imu
-        self.bias_sigmas = np.r_[[max(imu.accel_bias_sigma, 1e-4)] * 3, [max(imu.gyro_bias_sigma, 1e-6)] * 3]
+        self.bias_sigmas = np.r_[[max(node.imu.accel_bias_sigma, 1e-4)] * 3, [max(node.imu.gyro_bias_sigma, 1e-6)] * 3]
         self._reset(init.t, init.pos, init.vel, init.quat, np.asarray(init.pos_sigma, float),
                     float(init.vel_sigma), np.asarray(init.att_sigma, float))
 
@@ -262,11 +261,13 @@ class GraphEstimator(NodeEstimator):
         p_prev = self.p.copy()
         self.p = gauss_newton(self.p, lambda p: normal_equations(self.L, p, self._info, self.p_loc), self.gn_iters)
         self._links_ready = True
-        # a joint round 1 is the rounds' fixed point: it reports no change left, so the swarm stops there
-        delta = 0.0 if self.round_solver == "joint" and r == 1 else float(np.linalg.norm(self.p - p_prev))
+        delta = 0.0 if self.last_round() == r else float(np.linalg.norm(self.p - p_prev))  # joint: nothing left
         self._last_state = NodeState(self.uav, self.k, r, self.t, self.p.copy(), self.P_loc.copy(), self.vel.copy(),
                                      delta, quat=self._last_state.quat)  # the attitude is the epoch's (begin_epoch)
         return self._last_state
+
+    def last_round(self) -> int | None:  # a joint round 1 is the rounds' fixed point: the last
+        return 1 if self.round_solver == "joint" else None
 
     def _infl(self, o: int) -> float:
         """Covariance inflation of neighbour o's broadcast: by default the number of links o fused this

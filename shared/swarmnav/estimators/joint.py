@@ -43,53 +43,66 @@ def azel_observations(nodes: list[int], states: dict, own_uav: int, own_bearings
     return (np.array(obs, int), np.array(tgt, int), np.array(z, float).reshape(-1, 2), np.array(s2, float))
 
 
+class Scatter:
+    """The normal equations' (3n × 3n) H and g of n positions from factors between two ends, the
+    factors given as index pairs (``ends``: one (ia, ib) per kind, e.g. ranges, then (target,
+    observer) of az/el). A factor with block B and gradient v adds B to blocks (a, a) and (b, b),
+    −B to (a, b) and (b, a), v to g_a and −v to g_b. Summed per ordered pair first (one
+    ``bincount`` into (n, n, 3, 3)): with S(a, b) = P(a, b) + P(b, a), H(a, b) = −S(a, b) and
+    H(a, a) = Σ_b S(a, b). Built once per snapshot, used by every Gauss–Newton iteration."""
+
+    def __init__(self, n: int, ends: list[tuple[np.ndarray, np.ndarray]]):
+        self.n = n
+        pair = np.concatenate([np.asarray(a, int) * n + np.asarray(b, int) for a, b in ends]) if ends else np.zeros(0, int)
+        self.block_idx = (pair[:, None] * 9 + np.arange(9)[None, :]).ravel()
+        self.grad_idx = (pair[:, None] * 3 + np.arange(3)[None, :]).ravel()
+
+    def assemble(self, B: list[np.ndarray], gv: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """H (3n, 3n) and g (3n,) from each kind's symmetric blocks B (m, 3, 3) and gradients
+        gv (m, 3), in the order of ``ends``."""
+        n = self.n
+        P = np.bincount(self.block_idx, np.concatenate([b.ravel() for b in B]), minlength=n * n * 9).reshape(n, n, 3, 3)
+        G = np.bincount(self.grad_idx, np.concatenate([v.ravel() for v in gv]), minlength=n * n * 3).reshape(n, n, 3)
+        S = P + P.transpose(1, 0, 2, 3)  # blocks are symmetric: P(b, a)ᵀ = P(b, a)
+        H = -S
+        H[np.arange(n), np.arange(n)] = S.sum(axis=1)
+        return H.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n), G.sum(axis=1) - G.sum(axis=0)
+
+
 def solve(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np.ndarray, d: np.ndarray,
           w: np.ndarray, sig2: float, azel: tuple, x0: np.ndarray, iterations: int = 5, tol_m: float = 1e-3,
-          azel_w: np.ndarray | None = None) -> np.ndarray:
+          azel_w: np.ndarray | None = None, scatter: Scatter | None = None) -> np.ndarray:
     """Gauss–Newton MAP of n positions (n, 3): priors N(prior_mean[i], prior_info[i]⁻¹), ranges
     d between ia and ib with weights w and variance sig2 (m²), az/el observations ``azel`` =
     (observer, target, z, σ²) (:func:`azel_observations`) with weights ``azel_w`` (None: 1); from x0,
     until a step is below ``tol_m`` (Gauss–Newton converges quadratically here: after a 1 mm step
     the solution is within ~10 µm of converged, measured on paper). A non-finite step keeps the last
-    finite solution."""
+    finite solution. ``scatter``: :class:`Scatter` of (ia, ib) and (target, observer), if the caller
+    solves the same structure several times (a weight of 0 drops a factor)."""
     n = len(prior_mean)
     x = x0.copy()
     obs, tgt, z, s2 = azel
-    if azel_w is not None:
-        ka = azel_w > 0
-        obs, tgt, z, s2 = obs[ka], tgt[ka], z[ka], s2[ka] / azel_w[ka]
-    keep = w > 0
-    ia, ib, d, a = ia[keep], ib[keep], d[keep], w[keep] / sig2
-    nodes = np.arange(n)
-    # one-hot incidence of each factor's two ends: the diagonal blocks and g are sums over factors,
-    # taken as matmuls; an off-diagonal block (i, j) comes from factors between i and j only, and
-    # within one kind each ordered pair occurs once, so fancy-indexed += adds them exactly
-    ea, eb = np.eye(n)[ia].T, np.eye(n)[ib].T  # (n, m)
-    eo, et = np.eye(n)[obs].T, np.eye(n)[tgt].T
+    a = np.asarray(w, float) / sig2
+    inv_s2 = 1.0 / s2 if azel_w is None else np.asarray(azel_w, float) / s2
+    sc = scatter or Scatter(n, [(ia, ib), (tgt, obs)])
+    H0 = np.zeros((n, 3, n, 3))
+    H0[np.arange(n), :, np.arange(n), :] = prior_info
+    H0 = H0.reshape(3 * n, 3 * n)
     for _ in range(iterations):
-        Hb = np.zeros((n, n, 3, 3))
-        Hb[nodes, nodes] = prior_info
-        g = np.einsum("nij,nj->ni", prior_info, prior_mean - x)
-        if len(d):
-            dv = x[ia] - x[ib]
-            r = np.sqrt(np.einsum("ij,ij->i", dv, dv))
-            u = dv / np.maximum(r, 1e-9)[:, None]
-            B = (u[:, :, None] * u[:, None, :]) * a[:, None, None]
-            gb = u * (a * (d - r))[:, None]
-            Hb[nodes, nodes] += ((ea + eb) @ B.reshape(-1, 9)).reshape(n, 3, 3)
-            Hb[ia, ib] -= B
-            Hb[ib, ia] -= B
-            g += ea @ gb - eb @ gb
-        if len(obs):
-            az, el, J = azel_jacobians(x[tgt] - x[obs])  # J = ∂(az, el)/∂p_tgt = −∂/∂p_obs
-            res = azel_residuals(z, az, el)
-            B = np.einsum("mki,mkj->mij", J, J) / s2[:, None, None]
-            gj = np.einsum("mki,mk->mi", J, res) / s2[:, None]
-            Hb[nodes, nodes] += ((eo + et) @ B.reshape(-1, 9)).reshape(n, 3, 3)
-            Hb[tgt, obs] -= B
-            Hb[obs, tgt] -= B
-            g += et @ gj - eo @ gj
-        dx = np.linalg.solve(Hb.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n), g.ravel()).reshape(n, 3)
+        g0 = (prior_info @ (prior_mean - x)[:, :, None])[:, :, 0]
+        dv = x[ia] - x[ib]
+        r = np.sqrt((dv * dv).sum(axis=1))
+        u = dv / np.maximum(r, 1e-9)[:, None]
+        ua = u * a[:, None]
+        Br = u[:, :, None] * ua[:, None, :]
+        gr = ua * (d - r)[:, None]
+        az, el, J = azel_jacobians(x[tgt] - x[obs])  # J = ∂(az, el)/∂p_tgt = −∂/∂p_obs
+        res = azel_residuals(z, az, el)
+        Jw = J * inv_s2[:, None, None]
+        Ba = J.transpose(0, 2, 1) @ Jw
+        ga = (Jw.transpose(0, 2, 1) @ res[:, :, None])[:, :, 0]
+        H, g = sc.assemble([Br, Ba], [gr, ga])
+        dx = np.linalg.solve(H0 + H, (g + g0).ravel()).reshape(n, 3)
         if not np.all(np.isfinite(dx)):
             break
         x = x + dx
@@ -114,10 +127,11 @@ def snapshot(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib:
     factor); else weight 1."""
     x = prior_mean.copy()
     pidx = pair_index(ia, ib, azel[0], azel[1]) if azel_follows_range else None
+    sc = Scatter(len(x), [(ia, ib), (azel[1], azel[0])])
     for _ in range(passes + 1):
         w = weigh(x)
         aw = None if pidx is None else np.where(pidx >= 0, w[np.maximum(pidx, 0)], 1.0)
-        x = solve(prior_mean, prior_info, ia, ib, d, w, sig2, azel, x, azel_w=aw)
+        x = solve(prior_mean, prior_info, ia, ib, d, w, sig2, azel, x, azel_w=aw, scatter=sc)
     return x
 
 

@@ -94,14 +94,7 @@ class RangeMemory:
         if c.rng_z is None or not len(c.rng_z):
             return
         r0_own = own.pos
-        # the current rows' residual per neighbour at the round-0 positions
-        now = {}
-        for o in c.nb:
-            if peers.get(o) is None or peers[o].r != 0:
-                continue
-            m = c.rng_owner == o
-            rr, _ = ranges(r0_own + c.rng_lever[m] - peers[o].pos)
-            now[o] = (float(np.mean(c.rng_z[m] - rr)), float(np.mean(c.rng_sig2[m])))
+        now = self._residual_now(c, peers, own.pos)
         me, out = self.chain[node.uav], []
         for k_old, owners, levers, sig2, z, S_old in self.hist:
             lag = node.k - k_old
@@ -125,6 +118,24 @@ class RangeMemory:
             out.append((o_s[ok], lev[ok], sig2[sel][ok] + q, z[sel][ok]))
         if out:
             self.rows = tuple(np.concatenate(x) for x in zip(*out))
+
+    @staticmethod
+    def _residual_now(c, peers: dict, p_own: np.ndarray) -> dict[int, tuple[float, float]]:
+        """Per ranged neighbour with a round-0 state: the mean residual (m) of this epoch's range
+        rows to it at the round-0 positions and the rows' mean σ² (m²)."""
+        live = [o for o in c.nb if peers.get(o) is not None and peers[o].r == 0]
+        if not live:
+            return {}
+        slot = {o: i for i, o in enumerate(live)}
+        gi = np.array([slot.get(int(o), -1) for o in c.rng_owner], int)
+        m = gi >= 0
+        gi = gi[m]
+        pos = np.array([peers[o].pos for o in live])
+        rr, _ = ranges(p_own + c.rng_lever[m] - pos[gi])
+        cnt = np.bincount(gi, minlength=len(live))
+        res = np.bincount(gi, c.rng_z[m] - rr, minlength=len(live))
+        sig2 = np.bincount(gi, c.rng_sig2[m], minlength=len(live))
+        return {o: (float(res[i] / cnt[i]), float(sig2[i] / cnt[i])) for i, o in enumerate(live) if cnt[i]}
 
     def extend(self, node, L: Links, infl) -> Links:
         """``L`` (the round's links) with the moved rows of neighbours whose link is H2 now appended to
