@@ -11,6 +11,7 @@ The neighbours' az/el observations *of this node* enter turned around: the direc
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import gtsam
@@ -77,11 +78,11 @@ def tdoa_weights(node: GraphEstimator, c: RoundCache, P: np.ndarray) -> np.ndarr
 def own_ranges(inp: EpochInput, uav: int, uavs: set[int]) -> tuple[dict[int, float], dict[int, list[int]]]:
     """Inter-UAV ranges node ``uav`` took part in: (other UAV -> mean range m, other UAV -> rows)."""
     rows: dict[int, list[int]] = {}
-    for i, o in enumerate(inp.range_other):
-        o = int(o)
-        if o in uavs and o != uav and np.isfinite(inp.range_m[i]) and inp.range_m[i] > 0:
+    rm = inp.range_m.tolist()  # Python floats: the loop reads each once
+    for i, (o, r) in enumerate(zip(map(int, inp.range_other.tolist()), rm)):
+        if o in uavs and o != uav and math.isfinite(r) and r > 0:
             rows.setdefault(o, []).append(i)
-    return {o: float(np.mean(inp.range_m[r])) for o, r in sorted(rows.items())}, rows
+    return {o: rm[r[0]] if len(r) == 1 else float(np.mean(inp.range_m[r])) for o, r in sorted(rows.items())}, rows
 
 
 def own_bearings(inp: EpochInput, uav: int, rel_sigma: float) -> dict[int, tuple[float, float, float]]:
@@ -89,11 +90,10 @@ def own_bearings(inp: EpochInput, uav: int, rel_sigma: float) -> dict[int, tuple
     target -> (azimuth wrapped into [−π, π] (the state frame's range), elevation, σ) rad; an
     elevation beyond ±π/2 is not a direction and is not broadcast."""
     out: dict[int, tuple[float, float, float]] = {}
-    for i, o in enumerate(inp.rel_target):
-        el = float(inp.rel_el[i])
-        if int(o) != uav and int(o) not in out and abs(el) <= np.pi / 2:
-            sg = float(inp.rel_sigma[i]) if inp.rel_sigma[i] > 0 else float(rel_sigma)
-            out[int(o)] = (float(wrap_angle(float(inp.rel_az[i]))), el, sg)
+    az = wrap_angle(inp.rel_az).tolist()
+    for o, a, el, sg in zip(map(int, inp.rel_target.tolist()), az, inp.rel_el.tolist(), inp.rel_sigma.tolist()):
+        if o != uav and o not in out and abs(el) <= np.pi / 2:
+            out[o] = (a, el, sg if sg > 0 else float(rel_sigma))
     return out
 
 

@@ -31,16 +31,13 @@ def azel_observations(nodes: list[int], states: dict, own_uav: int, own_bearings
     target index, z (M, 2) rad, σ² (M,) rad²). ``states``: the peers' round-0 states; the node's own
     observations are ``own_bearings`` (target -> (az, el, σ))."""
     idx = {u: i for i, u in enumerate(nodes)}
-    obs, tgt, z, s2 = [], [], [], []
+    rows: list[tuple] = []
     for u in nodes:
         b = own_bearings if u == own_uav else getattr(states.get(u), "bearings", None) or {}
-        for t, (az, el, sg) in sorted(b.items()):
-            if t in idx and t != u:
-                obs.append(idx[u])
-                tgt.append(idx[t])
-                z.append((az, el))
-                s2.append(sg * sg)
-    return (np.array(obs, int), np.array(tgt, int), np.array(z, float).reshape(-1, 2), np.array(s2, float))
+        i = idx[u]
+        rows.extend((i, idx[t], az, el, sg * sg) for t, (az, el, sg) in sorted(b.items()) if t in idx and t != u)
+    a = np.array(rows, float).reshape(-1, 5)
+    return a[:, 0].astype(int), a[:, 1].astype(int), a[:, 2:4].copy(), a[:, 4].copy()
 
 
 class Scatter:
