@@ -108,29 +108,26 @@ def azel_block_factor(key_obs: int, key_tgts: list[int], az: np.ndarray, el: np.
     n = len(key_tgts)
     z = np.stack([np.asarray(az, float), np.asarray(el, float)], axis=1)  # (n,2)
     w = 1.0 / np.asarray(sigmas, float)
+    rows = np.arange(n)
 
     def err(this, v, H):
-        po_pose = v.atPose3(key_obs)
-        po, Ro = po_pose.translation(), po_pose.rotation().matrix()
-        pts = np.empty((n, 3))
-        Rts = []
-        for i, kt in enumerate(key_tgts):
-            P = v.atPose3(kt)
-            pts[i] = P.translation()
-            if H is not None:
-                Rts.append(P.rotation().matrix())
-        az_h, el_h, Jd = bearing.azel_jacobians(pts - po)  # models.bearing: h, ∂h/∂(p_tgt − p_obs)
+        # one Pose3.matrix() (4x4, world <- body) per pose: its rotation block and translation are
+        # the very numbers rotation().matrix() / translation() return
+        To = v.atPose3(key_obs).matrix()
+        Ts = np.stack([v.atPose3(kt).matrix() for kt in key_tgts])  # (n,4,4)
+        az_h, el_h, Jd = bearing.azel_jacobians(Ts[:, :3, 3] - To[:3, 3])  # h, ∂h/∂(p_tgt − p_obs)
         res = np.stack([az_h, el_h], axis=1) - z
         res[:, 0] = wrap_angle(res[:, 0])
         if H is not None:
             Jd *= w[:, None, None]
             Ho = np.zeros((2 * n, 6))
-            Ho[:, 3:6] = -(Jd @ Ro).reshape(2 * n, 3)
+            Ho[:, 3:6] = -(Jd @ To[:3, :3]).reshape(2 * n, 3)
             H[0] = Ho
+            # ∂/∂ξ_tgt (right-perturbed translation) = Jd_i R_i, each in its own two rows
+            Ht = np.zeros((n, 2 * n, 6))
+            Ht.reshape(n, n, 2, 6)[rows, rows, :, 3:6] = Jd @ Ts[:, :3, :3]
             for i in range(n):
-                Hi = np.zeros((2 * n, 6))
-                Hi[2 * i:2 * i + 2, 3:6] = Jd[i] @ Rts[i]
-                H[i + 1] = Hi
+                H[i + 1] = Ht[i]
         return (res * w[:, None]).reshape(2 * n)
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(2 * n), [key_obs, *key_tgts], err)
