@@ -152,5 +152,6 @@ def neighbourhood_snapshot(node: Any, c, peers: dict) -> np.ndarray:
         return det.detect(pairs.residuals(x), node.delta_l, node.window, node.floor_factor, node.kmeans_backend,
                           node.ceil_factor, node.cap_h1)[2]
 
+    # without detection every pass has the same weights (1): one solve is the whole snapshot
     return snapshot(mean, info, pairs.ia, pairs.ib, pairs.d, node.uwb_sigma ** 2, azel, weigh,
-                    node.joint_passes, azel_follows_range=node.azel_weight == "range")
+                    node.joint_passes if node.detect else 0, azel_follows_range=node.azel_weight == "range")
