@@ -19,12 +19,14 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 
 from services.runtime.service import Deadline, Inbox, finish_process, install_signals, parse_key, setup_logging, undeclare_all
 from services.runtime.zconf import client_config
 from swarmnav.dataset import Dataset, EpochSlicer, node_view
+from swarmnav.imu_source import ImuStream
 from swarmnav.evaluation import truth_at_epochs
 from swarmnav.geometry import quat_from_rotvec, quat_mul
 from swarmnav.estimators.base import InitialState
@@ -80,17 +82,27 @@ def restart_initial_state(truth, inits: dict, uavs: list[int], seed: int, u: int
                         vel_sigma=float(i0.vel_sigma), att_sigma=np.asarray(i0.att_sigma, float))
 
 
+LEVEL_MARGIN_S = 5.0  # IMU read beyond the levelling window: its start is the truth sample nearest t_start
+
+
 class SensorSim:
     def __init__(self, args, session, log):
         self.a, self.s, self.log = args, session, log
         self.run = args.run
-        self.ds = Dataset.read(args.dataset)
+        # the IMU samples are streamed from the file epoch by epoch (imu_source.ImuStream): a 1000 s
+        # paper dataset holds ~110 MB of them, which this process need not keep
+        self.ds = Dataset.read(args.dataset, skip=("imu",))
         self.meta = self.ds.meta
         self.uavs = self.meta.uav_ids()
         self.uav_set = set(self.uavs)
         self.lost: list[tuple[int, int]] = []  # (first, last) epochs played into an outage (real-time mode)
-        self.slicer = EpochSlicer(self.ds)
+        imu = ImuStream.open(Path(args.dataset) / "imu.parquet", self.uavs)
+        self.slicer = EpochSlicer(self.ds, imu=imu)
+        level_w = float((self.meta.init or {}).get("level_window_s", 0.0) or 0.0)
+        if level_w > 0:  # the initial levelling reads the first seconds of IMU (initial.level_roll_pitch)
+            self.ds.tables["imu"] = imu.head(self.meta.t_start + level_w + LEVEL_MARGIN_S)
         self.inits = initial_states(self.ds, args.seed)
+        self.ds.tables.pop("imu", None)
         self.truth = truth_at_epochs(self.ds)
         self.K = self.meta.n_epochs()
         self.inbox = Inbox()

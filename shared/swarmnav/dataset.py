@@ -48,6 +48,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from .errors import DatasetError
+from .imu_source import IMU_ROW_GROUP, ImuInMemory
 
 SCHEMA = "swarmnav.dataset/1"
 
@@ -260,13 +261,16 @@ class Dataset:
                 pa.Table.from_arrays(arrays, names=list(cols)),
                 out / f"{name}.parquet",
                 compression="zstd",
+                row_group_size=IMU_ROW_GROUP if name == "imu" else None,  # streamed by the sensor-sim
                 use_dictionary=False,
                 write_statistics=False,
                 store_schema=False,
             )
 
     @classmethod
-    def read(cls, path: str | Path) -> "Dataset":
+    def read(cls, path: str | Path, skip: tuple[str, ...] = ()) -> "Dataset":
+        """The dataset in ``path``; tables named in ``skip`` are not read (e.g. "imu" for a reader
+        that streams it: ``imu_source.ImuStream``)."""
         import pyarrow as pa
         import pyarrow.parquet as pq
 
@@ -281,6 +285,8 @@ class Dataset:
         tables: dict[str, Table] = {}
         for name, cols in TABLE_COLUMNS.items():
             f = path / f"{name}.parquet"
+            if name in skip and f.is_file():
+                continue
             if not f.is_file():
                 if name in OPTIONAL_TABLES:
                     continue
@@ -353,25 +359,17 @@ class EpochInput:
 
 
 class EpochSlicer:
-    """Cuts a dataset into EpochInput per (epoch, UAV) with precomputed indices (O(1) per call)."""
+    """Cuts a dataset into EpochInput per (epoch, UAV) with precomputed indices (O(1) per call).
+    ``imu``: where the IMU samples come from (``imu_source``: default the dataset's table, held
+    whole; the sensor-sim streams them from the file instead)."""
 
-    def __init__(self, ds: Dataset):
+    def __init__(self, ds: Dataset, imu=None):
         self.ds = ds
         self.meta = ds.meta
         self.uavs = ds.meta.uav_ids()
         self.K = ds.meta.n_epochs()
         self.edges = np.array([ds.meta.epoch_time(k) for k in range(self.K + 1)])
-        imu = ds.table("imu")
-        # per UAV its rows' indices (time order kept by the stable sort) and times; the samples are
-        # gathered per epoch, so the slicer holds no second copy of the IMU table (~110 MB on paper)
-        order = np.argsort(imu["node"], kind="stable")
-        sorted_nodes = imu["node"][order]
-        self._imu = {}
-        for u in self.uavs:
-            rows = order[np.searchsorted(sorted_nodes, u, "left"):np.searchsorted(sorted_nodes, u, "right")]
-            self._imu[u] = (imu["t"][rows], rows)
-        self._gyro = (imu["gx"], imu["gy"], imu["gz"])
-        self._accel = (imu["ax"], imu["ay"], imu["az"])
+        self.imu = imu if imu is not None else ImuInMemory(ds.table("imu"), self.uavs)
         self._gnss = {}
         if "gnss" in ds.tables and len(ds.tables["gnss"]["t"]):
             g = ds.gnss_enu()
@@ -393,15 +391,8 @@ class EpochSlicer:
 
     def epoch(self, k: int, uav: int) -> EpochInput:
         t_prev, t = self.edges[k - 1], self.edges[k]
-        it, rows = self._imu[uav]
-        lo, hi = np.searchsorted(it, t_prev, "left"), np.searchsorted(it, t, "left")
-        # the sample in force at t_prev (if it started earlier) is needed for the hold
-        if lo > 0 and (lo == len(it) or it[lo] > t_prev):
-            lo -= 1
-        sel = rows[lo:hi]
-        inp = EpochInput(uav=uav, k=k, t=float(t), t_prev=float(t_prev), imu_t=it[lo:hi],
-                         gyro=np.column_stack([c[sel] for c in self._gyro]),
-                         accel=np.column_stack([c[sel] for c in self._accel]))
+        imu_t, gyro, accel = self.imu.samples(uav, t_prev, t)
+        inp = EpochInput(uav=uav, k=k, t=float(t), t_prev=float(t_prev), imu_t=imu_t, gyro=gyro, accel=accel)
         gi = self._gnss.get((k, uav))
         if gi is not None:
             g = self._g
