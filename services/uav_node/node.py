@@ -428,6 +428,8 @@ class Node:
                 self.cpu_est += time.process_time() - c1
         except StopIteration as stop:
             est = stop.value
+        if est.unsent is not None:  # not broadcast, but a restarting peer's query gets our newest state
+            self.history.append(M.encode_state(est.unsent))
         em = M.estimate_to_msg(est, wait_ms=wait * 1e3, peers=sorted(used), bytes_out=0, inc=self.inc,
                                rejected=dict(list(self.rejects.as_dict().items())[:64]))
         links = M.LinksMsg(uav=self.uav, k=k, links=em.links).encode()

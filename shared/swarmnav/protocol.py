@@ -47,14 +47,15 @@ def node_epoch(est: NodeEstimator, inp: EpochInput, rounds: int, tol_m: float,
     state = est.begin_epoch(inp)
     busy += clock() - t0
     peers = yield state
-    done = 0
+    done, unsent = 0, None
     last = est.last_round()
     for r in range(1, rounds + 1):
         t0 = clock()
         state = est.iterate(r, peers)
         busy += clock() - t0
         done = r
-        if r == last:  # every node ends here: a state nobody reads is not sent
+        if r == last:  # every node ends here: a state nobody reads now is not sent
+            unsent = state
             break
         peers = yield state
         if swarm_converged(state, peers, tol_m):
@@ -62,7 +63,7 @@ def node_epoch(est: NodeEstimator, inp: EpochInput, rounds: int, tol_m: float,
     t0 = clock()
     out = est.end_epoch()
     busy += clock() - t0
-    out.rounds = done
+    out.rounds, out.unsent = done, unsent
     out.step_ms = busy * 1e3
     return out
 

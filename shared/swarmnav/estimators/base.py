@@ -97,6 +97,7 @@ class NodeEstimate:
     step_ms: float = 0.0  # wall time of this epoch's estimator work, excluding waits for peers
     delta_h_m: float | None = None  # the upper threshold used this epoch (atvfg)
     delta_l_m: float | None = None
+    unsent: "NodeState | None" = None  # the last round's state when it was not broadcast (last_round)
 
 
 @dataclass

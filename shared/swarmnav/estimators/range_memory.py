@@ -87,10 +87,14 @@ class RangeMemory:
         ``own`` the node's round-0 state); update the displacement chains and the δ statistics."""
         self.k, self.rows = node.k, None
         self._advance(node.uav, node.k, own.t, own.vel)
-        for o, s in peers.items():
-            if s.r == 0:
-                self._advance(int(o), node.k, s.t, s.vel)
         c = node.cache
+        # only the neighbourhood's chains (the whole swarm's would be O(N) per node): a row is used
+        # only while its neighbour is ranged now, so in the neighbourhood; with epochs > 1 one that
+        # left the neighbourhood in between starts a new chain and its older rows are not used
+        for o in c.nodes:
+            s = peers.get(o)
+            if s is not None and s.r == 0:
+                self._advance(int(o), node.k, s.t, s.vel)
         if c.rng_z is None or not len(c.rng_z):
             return
         r0_own = own.pos
