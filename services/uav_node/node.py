@@ -424,8 +424,10 @@ class Node:
                 self.cpu_wait += c1 - c0
                 wait += time.monotonic() - t0
                 used |= set(got)
-                state = gen.send(got)
-                self.cpu_est += time.process_time() - c1
+                try:
+                    state = gen.send(got)
+                finally:  # the last send ends the epoch (StopIteration): its estimator time counts too
+                    self.cpu_est += time.process_time() - c1
         except StopIteration as stop:
             est = stop.value
         if est.unsent is not None:  # not broadcast, but a restarting peer's query gets our newest state
