@@ -99,10 +99,9 @@ class SensorSim:
         imu = ImuStream.open(Path(args.dataset) / "imu.parquet", self.uavs)
         self.slicer = EpochSlicer(self.ds, imu=imu)
         level_w = float((self.meta.init or {}).get("level_window_s", 0.0) or 0.0)
-        if level_w > 0:  # the initial levelling reads the first seconds of IMU (initial.level_roll_pitch)
-            self.ds.tables["imu"] = imu.head(self.meta.t_start + level_w + LEVEL_MARGIN_S)
-        self.inits = initial_states(self.ds, args.seed)
-        self.ds.tables.pop("imu", None)
+        # the initial levelling reads the first seconds of IMU (initial.level_roll_pitch)
+        head = {"imu": imu.head(self.meta.t_start + level_w + LEVEL_MARGIN_S)} if level_w > 0 else {}
+        self.inits = initial_states(Dataset(self.meta, {**self.ds.tables, **head}), args.seed)
         self.truth = truth_at_epochs(self.ds)
         self.K = self.meta.n_epochs()
         self.inbox = Inbox()

@@ -17,6 +17,11 @@ IMU_COLUMNS = ("t", "node", "gx", "gy", "gz", "ax", "ay", "az")
 IMU_ROW_GROUP = 1 << 16  # rows per parquet row group of imu.parquet (~3.6 s of an 18-UAV 100 Hz swarm)
 
 
+def _columns(tab) -> dict[str, np.ndarray]:
+    """An Arrow table of the IMU columns as arrays: node int64, the rest float64 (as dataset.py)."""
+    return {c: tab.column(c).to_numpy().astype(np.int64 if c == "node" else np.float64) for c in IMU_COLUMNS}
+
+
 def _hold_window(it: np.ndarray, t_prev: float, t: float) -> tuple[int, int]:
     """Index range [lo, hi) of the samples of one UAV (times ``it``, sorted) for (t_prev, t]."""
     lo, hi = np.searchsorted(it, t_prev, "left"), np.searchsorted(it, t, "left")
@@ -61,10 +66,8 @@ class ImuStream:
     sample before them (the hold); asking for an earlier epoch starts again from the first group.
     Gives exactly what :class:`ImuInMemory` gives."""
 
-    def __init__(self, path: Path, uavs: list[int], group_t_max: np.ndarray):
-        import pyarrow.parquet as pq
-
-        self._pf = pq.ParquetFile(path)
+    def __init__(self, pf, uavs: list[int], group_t_max: np.ndarray):
+        self._pf = pf  # pyarrow.parquet.ParquetFile of imu.parquet
         self._uavs = list(uavs)
         self._group_t_max = group_t_max  # last time of each row group (s)
         self.reset()
@@ -77,13 +80,11 @@ class ImuStream:
         pf = pq.ParquetFile(path)
         t = pf.read(columns=["t"]).column("t").to_numpy()
         if len(t) and not np.all(np.diff(t) >= 0):
-            cols = {c: pf.read(columns=[c]).column(c).to_numpy() for c in IMU_COLUMNS}
-            cols["node"] = cols["node"].astype(np.int64)
-            return ImuInMemory({c: np.asarray(v, np.int64 if c == "node" else np.float64) for c, v in cols.items()}, uavs)
+            return ImuInMemory(_columns(pf.read(columns=list(IMU_COLUMNS))), uavs)
         sizes = [pf.metadata.row_group(i).num_rows for i in range(pf.num_row_groups)]
         ends = np.cumsum(sizes)
         t_max = np.array([t[e - 1] if n else -np.inf for e, n in zip(ends, sizes)], float)
-        return cls(Path(path), uavs, t_max)
+        return cls(pf, uavs, t_max)
 
     def reset(self) -> None:
         self._next = 0  # next row group to read
@@ -93,8 +94,7 @@ class ImuStream:
         self._t_prev = -np.inf
 
     def _read_group(self, i: int) -> dict[str, np.ndarray]:
-        tab = self._pf.read_row_group(i, columns=list(IMU_COLUMNS))
-        return {c: tab.column(c).to_numpy().astype(np.int64 if c == "node" else np.float64) for c in IMU_COLUMNS}
+        return _columns(self._pf.read_row_group(i, columns=list(IMU_COLUMNS)))
 
     def _drop(self, g: dict[str, np.ndarray]) -> None:
         for u in self._uavs:

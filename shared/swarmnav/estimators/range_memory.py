@@ -98,7 +98,7 @@ class RangeMemory:
         if c.rng_z is None or not len(c.rng_z):
             return
         r0_own = own.pos
-        now = self._residual_now(c, peers, own.pos)
+        now = self._residual_now(c, peers, r0_own)
         me, out = self.chain[node.uav], []
         for k_old, owners, levers, sig2, z, S_old in self.hist:
             lag = node.k - k_old
