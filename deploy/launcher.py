@@ -90,6 +90,7 @@ def _env() -> dict:
     for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
         env[v] = "1"
     env["PYTHONUNBUFFERED"] = "1"
+    env.setdefault("MALLOC_ARENA_MAX", "2")  # glibc: 2 heaps, not one per thread (-16 MB RSS per UAV process)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), str(REPO / "shared")] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
     return env
 

@@ -32,6 +32,9 @@ def _base(conf) -> None:
     # DROP publishers (peer states) wait this long for room in a congested link queue before
     # dropping (default 1 ms): 20 processes on 2 cores starve the router for longer than that
     conf.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop", str(DROP_WAIT_US))
+    # no shared-memory transport: every byte goes over the authenticated (TLS) link, and no process
+    # maps a 16 MB pool of every peer's (zenoh 1.10 enables it: messages > 3 KB, e.g. a UAV's input)
+    conf.insert_json5("transport/shared_memory/enabled", "false")
 
 
 def router_config(listen: list[str] | None, config_file: str | None = None):
