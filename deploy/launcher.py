@@ -3,7 +3,9 @@
 Opens an embedded Zenoh router in this process (loopback listen endpoint on a free port, multicast
 scouting off) and starts the monitor, N uav_node processes and the sensor-sim, each its own OS
 process (``python -m services.<name>``) with its own log file under ``<run>/logs/``, OMP/BLAS
-threads = 1.
+threads = 1. The UAV node processes are forked by a zygote (deploy/zygote.py) that has imported
+their modules once, unless ``SWARMNAV_ZYGOTE=0`` or ``SWARMNAV_PROFILE`` is set; if the zygote dies,
+the run stops.
 
 Secure by default (services/runtime/security.py): the router listens on mutual TLS only and enforces an ACL
 generated from ``swarmnav.wire.keys``; every service connects with its own certificate
@@ -30,6 +32,7 @@ import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from deploy.zygote import EXIT_UNKNOWN, Zygote, ZygoteLost, ZygoteProc
 from services.runtime.zconf import free_port, router_config
 from swarmnav.wire import keys
 from swarmnav.wire import messages as M
@@ -51,9 +54,10 @@ class Proc:
     name: str
     argv: list[str]
     log: Path
-    p: subprocess.Popen | None = None
+    p: subprocess.Popen | ZygoteProc | None = None
     expected_kill: bool = False
     history: list[int] = field(default_factory=list)  # exit codes of earlier incarnations
+    zygote: Zygote | None = None  # started as a fork of this zygote instead of with Popen
 
 
 @dataclass
@@ -97,6 +101,9 @@ def _env() -> dict:
 
 def start(proc: Proc) -> None:
     proc.log.parent.mkdir(parents=True, exist_ok=True)
+    if proc.zygote is not None:
+        proc.p = proc.zygote.spawn(proc.argv, proc.log)
+        return
     f = open(proc.log, "ab")
     proc.p = subprocess.Popen(proc.argv, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, cwd=str(REPO),
                               env=_env(), preexec_fn=_pdeathsig)
@@ -134,6 +141,8 @@ def _last_error(log: Path) -> str:
 def describe_exit(rc: int | None) -> str:
     if rc is None:
         return "still running"
+    if rc == EXIT_UNKNOWN:
+        return "exit status unknown (its zygote died)"
     if rc < 0:
         try:
             return f"killed by {signal.Signals(-rc).name}"
@@ -177,6 +186,12 @@ def _build_procs(spec: LaunchSpec, router: str, run_id: str, sec) -> tuple[Proc,
     return mon, nodes, Proc("sensor_sim", sim_argv, logs / "sensor_sim.log")
 
 
+def use_zygote() -> bool:
+    """UAV node processes are forked by a zygote unless ``SWARMNAV_ZYGOTE=0``, or under
+    ``SWARMNAV_PROFILE`` (deploy/profrun.py runs each service under cProfile from its first import)."""
+    return os.environ.get("SWARMNAV_ZYGOTE", "1") != "0" and not os.environ.get("SWARMNAV_PROFILE")
+
+
 def launch(spec: LaunchSpec) -> LaunchResult:
     """Run the swarm; returns the exit status, per-process summary, why it stopped and the
     launcher's own events (unscheduled deaths)."""
@@ -197,6 +212,7 @@ def launch(spec: LaunchSpec) -> LaunchResult:
     if viewer is not None:
         viewer.expected_kill = True  # stopped with the run on purpose: its exit status says nothing
         procs.append(viewer)
+    zygote = None
     events: list[dict] = []
     t0 = time.monotonic()  # --timeout counts from here
     bar = tqdm(total=spec.n_epochs, desc="epochs", unit="ep", disable=not spec.progress, file=sys.stderr)
@@ -210,9 +226,17 @@ def launch(spec: LaunchSpec) -> LaunchResult:
         with zenoh.open(sec.router_config()) as session:
             clock = session.declare_subscriber(keys.clock(run_id), zenoh.handlers.FifoChannel(10000))
             try:
-                for p in procs:
-                    start(p)
-                done, status, reason = _supervise(spec, t0, clock, sim, mon, nodes, bar, stopping, events)
+                if use_zygote():
+                    zygote = Zygote(spec.run_dir, spec.algo, [n.argv + ["--rejoin"] for n in nodes.values()],
+                                    spec.run_dir / "logs" / "zygote.log", cwd=str(REPO), env=_env(), preexec_fn=_pdeathsig)
+                    for n in nodes.values():
+                        n.zygote = zygote
+                try:
+                    for p in procs:
+                        start(p)
+                    done, status, reason = _supervise(spec, t0, clock, sim, mon, nodes, bar, stopping, events, zygote)
+                except ZygoteLost as e:
+                    done, status, reason = False, 1, _zygote_lost(str(e), zygote)
                 bar.close()
                 if done:  # the run is over: let the services finish on their own (the monitor writes its report)
                     _wait_finish(sim, mon, nodes, stopping)
@@ -220,6 +244,8 @@ def launch(spec: LaunchSpec) -> LaunchResult:
                     print(f"\nswarmnav launch: {reason}", file=sys.stderr)
             finally:
                 stop_all(procs)
+                if zygote is not None:
+                    zygote.close()
                 try:
                     clock.undeclare()
                 except Exception:  # session already closing
@@ -228,7 +254,7 @@ def launch(spec: LaunchSpec) -> LaunchResult:
         for s_, h in old.items():
             signal.signal(s_, h)
     summary = {}
-    for p in procs:
+    for p in procs + ([Proc("zygote", zygote.argv, zygote.log, zygote.p)] if zygote else []):
         rc = p.p.returncode if p.p else None
         summary[p.name] = {"exit": rc, "killed_by_schedule": p.expected_kill, "earlier": p.history}
         if rc != 0 and status == 0 and not p.expected_kill:
@@ -236,11 +262,16 @@ def launch(spec: LaunchSpec) -> LaunchResult:
     return LaunchResult(status, summary, reason, events, sec.report_block())
 
 
+def _zygote_lost(why: str, zygote: Zygote) -> str:
+    return f"the UAV zygote failed ({why}): its UAV processes die with it; stopping the run (see {zygote.log})"
+
+
 def _supervise(spec: LaunchSpec, t0: float, clock, sim: Proc, mon: Proc, nodes: dict[int, Proc], bar, stopping: dict,
-               events: list[dict]) -> tuple[bool, int, str | None]:
+               events: list[dict], zygote: Zygote | None) -> tuple[bool, int, str | None]:
     """Follow the sensor-sim's clock until it says done: progress, scheduled kills and restarts
     (``hold``), unscheduled deaths (appended to ``events``). Stops early on a signal, the timeout or
-    the death of the sensor-sim or the monitor (``t0``: time.monotonic() at the launch). -> (done, status, reason)."""
+    the death of the sensor-sim, the monitor or the UAV zygote (``t0``: time.monotonic() at the
+    launch). -> (done, status, reason)."""
     last_k, last_t = 0, 0.0
     while True:
         if stopping["sig"] is not None:
@@ -252,22 +283,26 @@ def _supervise(spec: LaunchSpec, t0: float, clock, sim: Proc, mon: Proc, nodes: 
             p = dead[0]
             return False, 1, (f"the {p.name.replace('_', '-')} died ({describe_exit(p.p.returncode)}) at epoch "
                               f"{last_k} before the run was done: stopping the run{_last_error(p.log)} (see {p.log})")
+        if zygote is not None and zygote.check():
+            return False, 1, _zygote_lost(f"{zygote.lost}, at epoch {last_k}", zygote)
+        # every clock message already here first: a node that exits on ``done`` must not be taken for a death
+        got = 0
+        while (s := clock.try_recv()) is not None:
+            got += 1
+            try:
+                c = M.decode(M.ClockMsg, s.payload.to_bytes())
+            except M.WireError:
+                continue
+            last_t = c.t
+            if c.k > last_k and not c.done:
+                bar.update(c.k - last_k)
+                last_k = c.k
+            _act_on_hold(c, nodes)
+            if c.done:
+                return True, 0, None
         _note_unscheduled_deaths(nodes, events, last_t, last_k)
-        s = clock.try_recv()
-        if s is None:
+        if not got:
             time.sleep(0.02)
-            continue
-        try:
-            c = M.decode(M.ClockMsg, s.payload.to_bytes())
-        except M.WireError:
-            continue
-        last_t = c.t
-        if c.k > last_k and not c.done:
-            bar.update(c.k - last_k)
-            last_k = c.k
-        _act_on_hold(c, nodes)
-        if c.done:
-            return True, 0, None
 
 
 def _note_unscheduled_deaths(nodes: dict[int, Proc], events: list[dict], last_t: float, last_k: int) -> None:

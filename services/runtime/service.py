@@ -16,6 +16,7 @@ explicitly (a declared subscriber left open hangs interpreter exit).
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import signal
@@ -142,12 +143,15 @@ def install_signals(inbox: Inbox) -> None:
     signal.signal(signal.SIGINT, handler)
 
 
+@functools.cache
 def code_digest() -> str:
     """12 hex of the sha256 over the swarmnav core sources (path + bytes) this process runs.
 
     Logged by every node at start-up: an in-process and a distributed run only agree when both ran
     the same estimator code, and a source file edited between two process starts is otherwise
-    invisible (``git describe`` only says "-dirty")."""
+    invisible (``git describe`` only says "-dirty"). Computed once, right after the imports: a UAV
+    process forked by the zygote (deploy/zygote.py) inherits the digest of the code it has loaded,
+    not of the files on disk at its fork."""
     import hashlib
     from pathlib import Path
 
