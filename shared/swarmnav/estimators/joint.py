@@ -45,25 +45,50 @@ class Scatter:
     factors given as index pairs (``ends``: one (ia, ib) per kind, e.g. ranges, then (target,
     observer) of az/el). A factor with block B and gradient v adds B to blocks (a, a) and (b, b),
     −B to (a, b) and (b, a), v to g_a and −v to g_b. Summed per ordered pair first (one
-    ``bincount`` into (n, n, 3, 3)): with S(a, b) = P(a, b) + P(b, a), H(a, b) = −S(a, b) and
-    H(a, a) = Σ_b S(a, b). Built once per snapshot, used by every Gauss–Newton iteration."""
+    ``bincount`` over the q ordered pairs that have a factor either way, sorted by (a, b)): with
+    S(a, b) = P(a, b) + P(b, a), H(a, b) = −S(a, b) and H(a, a) = Σ_b S(a, b) in b order. Built
+    once per snapshot, used by every Gauss–Newton iteration of its solves."""
 
     def __init__(self, n: int, ends: list[tuple[np.ndarray, np.ndarray]]):
         self.n = n
-        pair = np.concatenate([np.asarray(a, int) * n + np.asarray(b, int) for a, b in ends]) if ends else np.zeros(0, int)
-        self.block_idx = (pair[:, None] * 9 + np.arange(9)[None, :]).ravel()
-        self.grad_idx = (pair[:, None] * 3 + np.arange(3)[None, :]).ravel()
+        self.first = np.concatenate([np.asarray(a, int) for a, _ in ends]) if ends else np.zeros(0, int)
+        self.second = np.concatenate([np.asarray(b, int) for _, b in ends]) if ends else np.zeros(0, int)
+        code = self.first * n + self.second
+        slots = np.unique(np.concatenate([code, self.second * n + self.first]))
+        sa, sb = slots // n, slots % n
+        self.q = len(slots)
+        i3, i9 = np.arange(3), np.arange(9)
+        factor_slot = np.searchsorted(slots, code)
+        self.block_idx = (factor_slot[:, None] * 9 + i9).ravel()
+        self.grad_idx = (factor_slot[:, None] * 3 + i3).ravel()
+        self.reverse = np.searchsorted(slots, sb * n + sa)  # slot of (b, a) per slot (a, b)
+        self.diag_idx = (sa[:, None] * 9 + i9).ravel()
+        self.row_idx, self.col_idx = (sa[:, None] * 3 + i3).ravel(), (sb[:, None] * 3 + i3).ravel()
+        # the flat (3n × 3n) H gathered from [−S (q, 9), diagonal blocks (n, 9), 0]: block (a, b)'s
+        # entry (i, j) sits at (3a + i)·3n + 3b + j
+        self.gather = np.full(9 * n * n, 9 * (self.q + n), np.intp)
+        self.gather[self._block_positions(sa, sb)] = np.arange(9 * self.q)
+        self.gather[self._block_positions(np.arange(n), np.arange(n))] = 9 * self.q + np.arange(9 * n)
+        self._zero = np.zeros(1)
 
-    def assemble(self, B: list[np.ndarray], gv: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """H (3n, 3n) and g (3n,) from each kind's symmetric blocks B (m, 3, 3) and gradients
-        gv (m, 3), in the order of ``ends``."""
-        n = self.n
-        P = np.bincount(self.block_idx, np.concatenate([b.ravel() for b in B]), minlength=n * n * 9).reshape(n, n, 3, 3)
-        G = np.bincount(self.grad_idx, np.concatenate([v.ravel() for v in gv]), minlength=n * n * 3).reshape(n, n, 3)
-        S = P + P.transpose(1, 0, 2, 3)  # blocks are symmetric: P(b, a)ᵀ = P(b, a)
-        H = -S
-        H[np.arange(n), np.arange(n)] = S.sum(axis=1)
-        return H.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n), G.sum(axis=1) - G.sum(axis=0)
+    def _block_positions(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        i3 = np.arange(3)
+        return ((3 * a[:, None, None] + i3[:, None]) * (3 * self.n) + 3 * b[:, None, None] + i3).ravel()
+
+    def assemble(self, B: list[np.ndarray], gv: list[np.ndarray], prior_info: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """H (3n, 3n) (+ the priors' block-diagonal information (n, 3, 3)) and g (3n,) from each
+        kind's symmetric blocks B (m, 3, 3) and gradients gv (m, 3), in the order of ``ends``."""
+        n, q = self.n, self.q
+        P = np.bincount(self.block_idx, np.concatenate([b.ravel() for b in B]), minlength=q * 9).reshape(q, 9)
+        S = P + P.take(self.reverse, axis=0)
+        diag = np.bincount(self.diag_idx, S.ravel(), minlength=n * 9)
+        if prior_info is not None:
+            diag = prior_info.ravel() + diag
+        H = np.concatenate((-S.ravel(), diag, self._zero)).take(self.gather)
+        G = np.bincount(self.grad_idx, np.concatenate([v.ravel() for v in gv]), minlength=q * 3)
+        g = np.bincount(self.row_idx, G, minlength=3 * n) - np.bincount(self.col_idx, G, minlength=3 * n)
+        return H.reshape(3 * n, 3 * n), g
 
 
 def solve(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np.ndarray, d: np.ndarray,
@@ -76,30 +101,25 @@ def solve(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np
     the solution is within ~10 µm of converged, measured on paper). A non-finite step keeps the last
     finite solution. ``scatter``: :class:`Scatter` of (ia, ib) and (target, observer), if the caller
     solves the same structure several times (a weight of 0 drops a factor)."""
-    n = len(prior_mean)
+    n, m = len(prior_mean), len(ia)
     x = x0.copy()
     obs, tgt, z, s2 = azel
-    a = np.asarray(w, float) / sig2
-    inv_s2 = 1.0 / s2 if azel_w is None else np.asarray(azel_w, float) / s2
+    a = (np.asarray(w, float) / sig2)[:, None]
+    inv_s2 = (1.0 / s2 if azel_w is None else np.asarray(azel_w, float) / s2)[:, None, None]
     sc = scatter or Scatter(n, [(ia, ib), (tgt, obs)])
-    H0 = np.zeros((n, 3, n, 3))
-    H0[np.arange(n), :, np.arange(n), :] = prior_info
-    H0 = H0.reshape(3 * n, 3 * n)
     for _ in range(iterations):
-        g0 = (prior_info @ (prior_mean - x)[:, :, None])[:, :, 0]
-        dv = x[ia] - x[ib]
+        g0 = (prior_info @ (prior_mean - x)[:, :, None]).ravel()
+        diff = x.take(sc.first, axis=0) - x.take(sc.second, axis=0)  # ranges' p_a − p_b, then az/el's p_tgt − p_obs
+        dv = diff[:m]
         r = np.sqrt((dv * dv).sum(axis=1))
         u = dv / np.maximum(r, 1e-9)[:, None]
-        ua = u * a[:, None]
-        Br = u[:, :, None] * ua[:, None, :]
-        gr = ua * (d - r)[:, None]
-        az, el, J = azel_jacobians(x[tgt] - x[obs])  # J = ∂(az, el)/∂p_tgt = −∂/∂p_obs
-        res = azel_residuals(z, az, el)
-        Jw = J * inv_s2[:, None, None]
-        Ba = J.transpose(0, 2, 1) @ Jw
-        ga = (Jw.transpose(0, 2, 1) @ res[:, :, None])[:, :, 0]
-        H, g = sc.assemble([Br, Ba], [gr, ga])
-        dx = np.linalg.solve(H0 + H, (g + g0).ravel()).reshape(n, 3)
+        ua = u * a
+        az, el, J = azel_jacobians(diff[m:])  # J = ∂(az, el)/∂p_tgt = −∂/∂p_obs
+        Jw = J * inv_s2
+        JwT = Jw.transpose(0, 2, 1)
+        H, g = sc.assemble([u[:, :, None] * ua[:, None, :], J.transpose(0, 2, 1) @ Jw],
+                           [ua * (d - r)[:, None], (JwT @ azel_residuals(z, az, el)[:, :, None])[:, :, 0]], prior_info)
+        dx = np.linalg.solve(H, g + g0).reshape(n, 3)
         if not np.all(np.isfinite(dx)):
             break
         x = x + dx
