@@ -31,13 +31,20 @@ def azel_observations(nodes: list[int], states: dict, own_uav: int, own_bearings
     target index, z (M, 2) rad, σ² (M,) rad²). ``states``: the peers' round-0 states; the node's own
     observations are ``own_bearings`` (target -> (az, el, σ))."""
     idx = {u: i for i, u in enumerate(nodes)}
-    rows: list[tuple] = []
+    obs: list[int] = []
+    tgt: list[int] = []
+    vals: list[float] = []  # az, el, σ per observation
     for u in nodes:
         b = own_bearings if u == own_uav else getattr(states.get(u), "bearings", None) or {}
         i = idx[u]
-        rows.extend((i, idx[t], az, el, sg * sg) for t, (az, el, sg) in sorted(b.items()) if t in idx and t != u)
-    a = np.array(rows, float).reshape(-1, 5)
-    return a[:, 0].astype(int), a[:, 1].astype(int), a[:, 2:4].copy(), a[:, 4].copy()
+        for t in sorted(b):
+            j = idx.get(t)
+            if j is not None and t != u:
+                obs.append(i)
+                tgt.append(j)
+                vals += b[t]
+    v = np.array(vals, float).reshape(-1, 3)
+    return np.array(obs, int), np.array(tgt, int), v[:, :2].copy(), v[:, 2] * v[:, 2]
 
 
 class Scatter:
@@ -53,15 +60,19 @@ class Scatter:
         self.n = n
         self.first = np.concatenate([np.asarray(a, int) for a, _ in ends]) if ends else np.zeros(0, int)
         self.second = np.concatenate([np.asarray(b, int) for _, b in ends]) if ends else np.zeros(0, int)
-        code = self.first * n + self.second
-        slots = np.unique(np.concatenate([code, self.second * n + self.first]))
+        code, reverse_code = self.first * n + self.second, self.second * n + self.first
+        has_factor = np.zeros(n * n, bool)
+        has_factor[code] = has_factor[reverse_code] = True
+        slots = np.flatnonzero(has_factor)  # sorted by (a, b)
+        slot_of = np.zeros(n * n, np.intp)
+        slot_of[slots] = np.arange(len(slots))
         sa, sb = slots // n, slots % n
         self.q = len(slots)
         i3, i9 = np.arange(3), np.arange(9)
-        factor_slot = np.searchsorted(slots, code)
+        factor_slot = slot_of[code]
         self.block_idx = (factor_slot[:, None] * 9 + i9).ravel()
         self.grad_idx = (factor_slot[:, None] * 3 + i3).ravel()
-        self.reverse = np.searchsorted(slots, sb * n + sa)  # slot of (b, a) per slot (a, b)
+        self.reverse = slot_of[sb * n + sa]  # slot of (b, a) per slot (a, b)
         self.diag_idx = (sa[:, None] * 9 + i9).ravel()
         self.row_idx, self.col_idx = (sa[:, None] * 3 + i3).ravel(), (sb[:, None] * 3 + i3).ravel()
         # the flat (3n × 3n) H gathered from [−S (q, 9), diagonal blocks (n, 9), 0]: block (a, b)'s
@@ -129,9 +140,11 @@ def solve(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np
 
 
 def pair_index(ia: np.ndarray, ib: np.ndarray, obs: np.ndarray, tgt: np.ndarray) -> np.ndarray:
-    """For each az/el observation, the index of the ranged pair between its two ends (-1: none)."""
-    where = {(int(a), int(b)): i for i, (a, b) in enumerate(zip(ia.tolist(), ib.tolist()))}
-    return np.array([where.get((min(o, t), max(o, t)), -1) for o, t in zip(obs.tolist(), tgt.tolist())], int)
+    """For each az/el observation, the index of the ranged pair (ia < ib) between its two ends (-1: none)."""
+    n = int(max(ia.max(initial=-1), ib.max(initial=-1), obs.max(initial=-1), tgt.max(initial=-1))) + 1
+    where = np.full(n * n, -1)
+    where[ia * n + ib] = np.arange(len(ia))
+    return where[np.minimum(obs, tgt) * n + np.maximum(obs, tgt)]
 
 
 def snapshot(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np.ndarray, d: np.ndarray,
