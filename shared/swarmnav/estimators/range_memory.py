@@ -31,7 +31,9 @@ With report = "round" and no relinked commit only.
 
 from __future__ import annotations
 
+import math
 from collections import deque
+from dataclasses import replace
 
 import numpy as np
 
@@ -75,12 +77,13 @@ class RangeMemory:
         prev = self.chain.get(u)
         if prev is not None and prev[0] == k:
             return
-        if prev is not None and prev[0] == k - 1 and np.all(np.isfinite(v)):
+        v = np.array(v, float)  # a copy
+        if prev is not None and prev[0] == k - 1 and all(map(math.isfinite, v.tolist())):
             S = prev[3] + 0.5 * (prev[2] + v) * (t - prev[1])
-            self.chain[u] = (k, t, np.asarray(v, float).copy(), S, prev[4])
+            self.chain[u] = (k, t, v, S, prev[4])
         else:
             self._cid += 1
-            self.chain[u] = (k, t, np.asarray(v, float).copy(), np.zeros(3), self._cid)
+            self.chain[u] = (k, t, v, np.zeros(3), self._cid)
 
     def begin(self, node, peers: dict, own) -> None:
         """Move the remembered rows to the node's epoch (first round: ``peers`` are round-0 states,
@@ -142,9 +145,9 @@ class RangeMemory:
         return {o: (float(res[i] / cnt[i]), float(sig2[i] / cnt[i])) for i, o in enumerate(live) if cnt[i]}
 
     def extend(self, node, L: Links, infl) -> Links:
-        """``L`` (the round's links) with the moved rows of neighbours whose link is H2 now appended to
-        its range rows, each neighbour's covariance × ``infl`` (a number or per node id), and every
-        range row's neighbour index in ``rng_group``."""
+        """A copy of ``L`` (the round's links, unchanged) with the moved rows of neighbours whose link
+        is H2 now appended to its range rows, each neighbour's covariance × ``infl`` (a number or per
+        node id), and every range row's neighbour index in ``rng_group``."""
         c = node.cache
         if self.rows is None or L.rng is None or self.k != node.k:
             return L
@@ -158,11 +161,10 @@ class RangeMemory:
         w_cur = np.array([node.weights[o] for o in c.rng_owner])
         g_cur = c.rng_node[w_cur > 0]
         pj, Pj, w, lv, s2, zz = L.rng
-        L.rng = (np.concatenate([pj, node.P_round[n]]), np.concatenate([Pj, node.C_round[n] * f[:, None, None]]),
-                 np.concatenate([w, np.full(len(n), self.weight)]), np.concatenate([lv, lev]),
-                 np.concatenate([s2, sig2]), np.concatenate([zz, z]))
-        L.rng_group = np.concatenate([g_cur, n])
-        return L
+        rng = (np.concatenate([pj, node.P_round[n]]), np.concatenate([Pj, node.C_round[n] * f[:, None, None]]),
+               np.concatenate([w, np.full(len(n), self.weight)]), np.concatenate([lv, lev]),
+               np.concatenate([s2, sig2]), np.concatenate([zz, z]))
+        return replace(L, rng=rng, rng_group=np.concatenate([g_cur, n]))
 
     def report(self, node) -> tuple[np.ndarray, np.ndarray]:
         """The node's reported position and its covariance: its last round's solve (prior, the
@@ -171,7 +173,7 @@ class RangeMemory:
         (neighbours' covariances × 1 in the error model, rows of a neighbour sharing its error).
         The rounds, the broadcasts and the commit do not see the moved rows."""
         infl = node._infl if node.round_infl is None else node.round_infl
-        Lw = self.extend(node, node._links(node.round_infl), infl)
+        Lw = self.extend(node, node.L, infl)  # node.L: the last round's links, node._links(node.round_infl)
         if Lw.rng_group is None:  # no moved row is usable now: the round solution as it is
             H, _, M = normal_equations(node.L, node.p, node._info, node.p_loc, L_true=node._links(1.0))
             return node.p.copy(), sandwich_cov(H, M)
