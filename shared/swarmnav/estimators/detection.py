@@ -74,7 +74,8 @@ class RangePairs:
 
     def residuals(self, positions: np.ndarray) -> np.ndarray:
         """|d_ij − ‖p_i − p_j‖| with ``positions`` (len(nodes), 3) in the order of ``nodes``."""
-        return np.abs(self.d - np.linalg.norm(positions[self.ia] - positions[self.ib], axis=1))
+        dv = positions[self.ia] - positions[self.ib]
+        return np.abs(self.d - np.sqrt(np.add.reduce(dv * dv, axis=1)))  # = np.linalg.norm(dv, axis=1)
 
 
 def fallback_delta_l(uwb_sigma_m: float, fallback_sigmas: float) -> float:
@@ -133,8 +134,9 @@ def two_means_boundary(x: np.ndarray, backend: str = "exact") -> float | None:
     c1 = np.cumsum(x)
     c2 = np.cumsum(x * x)
     s = np.arange(1, n)  # split: low = x[:s], high = x[s:]
-    sse_lo = c2[s - 1] - c1[s - 1] ** 2 / s
-    sse_hi = (c2[-1] - c2[s - 1]) - (c1[-1] - c1[s - 1]) ** 2 / (n - s)
+    c1_lo, c2_lo = c1[:-1], c2[:-1]  # the cumulative sums at s − 1
+    sse_lo = c2_lo - c1_lo ** 2 / s
+    sse_hi = (c2[-1] - c2_lo) - (c1[-1] - c1_lo) ** 2 / (n - s)
     i = int(np.argmin(sse_lo + sse_hi))
     return 0.5 * (x[i] + x[i + 1])
 

@@ -164,7 +164,10 @@ def inv2(C: np.ndarray) -> np.ndarray:
     a, b, c, d = C[:, 0, 0], C[:, 0, 1], C[:, 1, 0], C[:, 1, 1]
     det = a * d - b * c
     out = np.empty_like(C)
-    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = d / det, -b / det, -c / det, a / det
+    out[:, 0, 0], out[:, 1, 1] = d, a
+    np.negative(C[:, 0, 1:], out=out[:, 0, 1:])  # −b
+    np.negative(C[:, 1, :1], out=out[:, 1, :1])  # −c
+    out /= det[:, None, None]  # (−b)/det = −(b/det): the same bits
     return out
 
 
