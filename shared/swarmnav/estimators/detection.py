@@ -67,10 +67,11 @@ class RangePairs:
     def __init__(self, nodes: Sequence[int], ranges: Mapping[tuple[int, int], float]):
         idx = {u: i for i, u in enumerate(nodes)}
         keys = sorted(k for k in ranges if k[0] in idx and k[1] in idx)
-        self.pairs = np.array(keys, np.int64).reshape(-1, 2)
         self.d = np.array([ranges[k] for k in keys], float)
         self.ia = np.array([idx[a] for a, _ in keys], int)
         self.ib = np.array([idx[b] for _, b in keys], int)
+        ids = np.array(nodes, np.int64)
+        self.pairs = np.stack([ids[self.ia], ids[self.ib]], axis=1) if keys else np.zeros((0, 2), np.int64)
 
     def residuals(self, positions: np.ndarray) -> np.ndarray:
         """|d_ij − ‖p_i − p_j‖| with ``positions`` (len(nodes), 3) in the order of ``nodes``."""
