@@ -134,7 +134,7 @@ def two_means_boundary(x: np.ndarray, backend: str = "exact") -> float | None:
     n = len(x)
     c1 = np.cumsum(x)
     c2 = np.cumsum(x * x)
-    s = np.arange(1, n)  # split: low = x[:s], high = x[s:]
+    s = np.arange(1.0, n)  # split: low = x[:s], high = x[s:]
     c1_lo, c2_lo = c1[:-1], c2[:-1]  # the cumulative sums at s − 1
     sse_lo = c2_lo - c1_lo ** 2 / s
     sse_hi = (c2[-1] - c2_lo) - (c1[-1] - c1_lo) ** 2 / (n - s)
@@ -272,9 +272,19 @@ def classify_and_weigh(res: np.ndarray, delta_l: float, delta_h: float, cap_h1: 
     """Classes and weights of residuals at given thresholds: eq. 24 (capped at (Δl/∂)² with
     ``cap_h1``), 0 for H0. Also used for links outside the residual matrix (graph.py: passive
     range differences, classified at the ranges' Δh)."""
-    cls = classify(res, delta_l, delta_h)
-    w = weight_eq24(res, delta_l, delta_h)
-    if cap_h1:
-        w = np.minimum(w, weight_cap_eq25(res, delta_l))
-    w[cls == int(H0)] = 0.0
+    r = np.abs(np.asarray(res, float))
+    cls = classify(r, delta_l, delta_h)
+    if delta_h <= delta_l:
+        w = weight_eq24(r, delta_l, delta_h)
+        if cap_h1:
+            w = np.minimum(w, weight_cap_eq25(r, delta_l))
+        w[cls == int(H0)] = 0.0
+        return cls, w
+    # eq. 24 and the cap evaluated on the H1 band only: both are 1 below Δl, eq. 24 is 0 from Δh
+    w = np.ones_like(r)
+    mid = (r >= delta_l) & (r < delta_h)
+    rm = r[mid]
+    w_mid = delta_l / rm * ((delta_h - rm) / (delta_h - delta_l)) ** 2
+    w[mid] = np.minimum(w_mid, (delta_l / rm) ** 2) if cap_h1 else w_mid
+    w[r >= delta_h] = 0.0
     return cls, w

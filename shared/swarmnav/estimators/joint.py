@@ -47,6 +47,11 @@ def azel_observations(nodes: list[int], states: dict, own_uav: int, own_bearings
     return np.array(obs, int), np.array(tgt, int), v[:, :2].copy(), v[:, 2] * v[:, 2]
 
 
+def _lanes(idx: np.ndarray, width: int) -> np.ndarray:
+    """Flat indices of ``width`` consecutive entries per index: idx·width + 0 … width − 1."""
+    return (idx[:, None] * width + np.arange(width)).ravel()
+
+
 class Scatter:
     """The normal equations' (3n × 3n) H and g of n positions from factors between two ends, the
     factors given as index pairs (``ends``: one (ia, ib) per kind, e.g. ranges, then (target,
@@ -68,23 +73,19 @@ class Scatter:
         slot_of[slots] = np.arange(len(slots))
         sa, sb = slots // n, slots % n
         self.q = len(slots)
-        i3, i9 = np.arange(3), np.arange(9)
         factor_slot = slot_of[code]
-        self.block_idx = (factor_slot[:, None] * 9 + i9).ravel()
-        self.grad_idx = (factor_slot[:, None] * 3 + i3).ravel()
+        self.block_idx = _lanes(factor_slot, 9)
+        self.grad_idx = _lanes(factor_slot, 3)
         self.reverse = slot_of[sb * n + sa]  # slot of (b, a) per slot (a, b)
-        self.diag_idx = (sa[:, None] * 9 + i9).ravel()
-        self.row_idx, self.col_idx = (sa[:, None] * 3 + i3).ravel(), (sb[:, None] * 3 + i3).ravel()
-        # the flat (3n × 3n) H gathered from [−S (q, 9), diagonal blocks (n, 9), 0]: block (a, b)'s
-        # entry (i, j) sits at (3a + i)·3n + 3b + j
-        self.gather = np.full(9 * n * n, 9 * (self.q + n), np.intp)
-        self.gather[self._block_positions(sa, sb)] = np.arange(9 * self.q)
-        self.gather[self._block_positions(np.arange(n), np.arange(n))] = 9 * self.q + np.arange(9 * n)
+        self.diag_idx = _lanes(sa, 9)
+        self.row_idx, self.col_idx = _lanes(sa, 3), _lanes(sb, 3)
+        # the flat (3n × 3n) H gathered from [−S (q, 9), diagonal blocks (n, 9), 0]: built block-major
+        # (a, b, i, j), then laid out as rows 3a + i, columns 3b + j
+        gather = np.full((n * n, 9), 9 * (self.q + n), np.intp)
+        gather[slots] = np.arange(9 * self.q).reshape(-1, 9)
+        gather[np.arange(n) * (n + 1)] = 9 * self.q + np.arange(9 * n).reshape(n, 9)
+        self.gather = gather.reshape(n, n, 3, 3).transpose(0, 2, 1, 3).ravel()
         self._zero = np.zeros(1)
-
-    def _block_positions(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        i3 = np.arange(3)
-        return ((3 * a[:, None, None] + i3[:, None]) * (3 * self.n) + 3 * b[:, None, None] + i3).ravel()
 
     def assemble(self, B: list[np.ndarray], gv: list[np.ndarray], prior_info: np.ndarray | None = None
                   ) -> tuple[np.ndarray, np.ndarray]:
