@@ -107,16 +107,18 @@ class RangeMemory:
             lag = node.k - k_old
             if not 1 <= lag <= self.epochs or S_old.get(node.uav, (None,))[0] != me[4]:
                 continue
-            sel = [n for n, o in enumerate(owners) if o in now and S_old.get(int(o), (None,))[0] == self.chain[int(o)][4]]
+            sel = [n for n, o in enumerate(owners.tolist())
+                   if o in now and S_old.get(o, (None,))[0] == self.chain[o][4]]
             if not sel:
                 continue
             o_s = owners[sel]
+            o_list = o_s.tolist()
             d_own = me[3] - S_old[node.uav][1]
-            d_nb = np.array([self.chain[int(o)][3] - S_old[int(o)][1] for o in o_s])
+            d_nb = np.array([self.chain[o][3] for o in o_list]) - np.array([S_old[o][1] for o in o_list])
             lev = levers[sel] - d_own + d_nb
-            rr, _ = ranges(r0_own + lev - np.array([peers[o].pos for o in o_s]))
-            delta = (z[sel] - rr) - np.array([now[o][0] for o in o_s])
-            s2sum = sig2[sel] + np.array([now[o][1] for o in o_s])
+            rr, _ = ranges(r0_own + lev - np.array([peers[o].pos for o in o_list]))
+            delta = (z[sel] - rr) - np.array([now[o][0] for o in o_list])
+            s2sum = sig2[sel] + np.array([now[o][1] for o in o_list])
             q = self.q_hat(lag)  # from earlier epochs only
             self.stats[lag].append((delta, s2sum))
             if q is None:
@@ -134,7 +136,7 @@ class RangeMemory:
         if not live:
             return {}
         slot = {o: i for i, o in enumerate(live)}
-        gi = np.array([slot.get(int(o), -1) for o in c.rng_owner], int)
+        gi = np.array([slot.get(o, -1) for o in c.rng_owner.tolist()], int)
         m = gi >= 0
         gi = gi[m]
         pos = np.array([peers[o].pos for o in live])
@@ -142,7 +144,8 @@ class RangeMemory:
         cnt = np.bincount(gi, minlength=len(live))
         res = np.bincount(gi, c.rng_z[m] - rr, minlength=len(live))
         sig2 = np.bincount(gi, c.rng_sig2[m], minlength=len(live))
-        return {o: (float(res[i] / cnt[i]), float(sig2[i] / cnt[i])) for i, o in enumerate(live) if cnt[i]}
+        res, sig2, cnt = res.tolist(), sig2.tolist(), cnt.tolist()  # Python floats: the same quotients
+        return {o: (res[i] / cnt[i], sig2[i] / cnt[i]) for i, o in enumerate(live) if cnt[i]}
 
     def extend(self, node, L: Links, infl) -> Links:
         """A copy of ``L`` (the round's links, unchanged) with the moved rows of neighbours whose link
@@ -152,13 +155,13 @@ class RangeMemory:
         if self.rows is None or L.rng is None or self.k != node.k:
             return L
         owners, lev, sig2, z = self.rows
-        use = np.array([node.weights.get(int(o), 0.0) >= 1.0 and int(o) in c.idx for o in owners])
+        use = np.array([node.weights.get(o, 0.0) >= 1.0 and o in c.idx for o in owners.tolist()])
         if not use.any():
             return L
-        owners, lev, sig2, z = owners[use], lev[use], sig2[use], z[use]
-        n = np.array([c.idx[int(o)] for o in owners], int)
-        f = np.array([infl(int(o)) for o in owners]) if callable(infl) else np.full(len(n), float(infl))
-        w_cur = np.array([node.weights[o] for o in c.rng_owner])
+        owners, lev, sig2, z = owners[use].tolist(), lev[use], sig2[use], z[use]
+        n = np.array([c.idx[o] for o in owners], int)
+        f = np.array([infl(o) for o in owners]) if callable(infl) else np.full(len(n), float(infl))
+        w_cur = np.array([node.weights[o] for o in c.rng_owner.tolist()])
         g_cur = c.rng_node[w_cur > 0]
         pj, Pj, w, lv, s2, zz = L.rng
         rng = (np.concatenate([pj, node.P_round[n]]), np.concatenate([Pj, node.C_round[n] * f[:, None, None]]),
