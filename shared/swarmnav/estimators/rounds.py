@@ -200,7 +200,7 @@ def gauss_newton(p: np.ndarray, normal_eq: Callable[[np.ndarray], tuple], iterat
         if not np.all(np.isfinite(dp)):
             break
         p = p + dp
-        if np.linalg.norm(dp) < 1e-4:
+        if np.sqrt(dp @ dp) < 1e-4:  # = np.linalg.norm(dp)
             break
     return p
 
