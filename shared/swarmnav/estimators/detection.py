@@ -67,14 +67,16 @@ class RangePairs:
     def __init__(self, nodes: Sequence[int], ranges: Mapping[tuple[int, int], float]):
         idx = {u: i for i, u in enumerate(nodes)}
         keys = sorted(k for k in ranges if k[0] in idx and k[1] in idx)
-        self.pairs = np.array(keys, np.int64).reshape(-1, 2)
         self.d = np.array([ranges[k] for k in keys], float)
         self.ia = np.array([idx[a] for a, _ in keys], int)
         self.ib = np.array([idx[b] for _, b in keys], int)
+        ids = np.array(nodes, np.int64)
+        self.pairs = np.stack([ids[self.ia], ids[self.ib]], axis=1) if keys else np.zeros((0, 2), np.int64)
 
     def residuals(self, positions: np.ndarray) -> np.ndarray:
         """|d_ij − ‖p_i − p_j‖| with ``positions`` (len(nodes), 3) in the order of ``nodes``."""
-        return np.abs(self.d - np.linalg.norm(positions[self.ia] - positions[self.ib], axis=1))
+        dv = positions[self.ia] - positions[self.ib]
+        return np.abs(self.d - np.sqrt(np.add.reduce(dv * dv, axis=1)))  # = np.linalg.norm(dv, axis=1)
 
 
 def fallback_delta_l(uwb_sigma_m: float, fallback_sigmas: float) -> float:
@@ -132,9 +134,10 @@ def two_means_boundary(x: np.ndarray, backend: str = "exact") -> float | None:
     n = len(x)
     c1 = np.cumsum(x)
     c2 = np.cumsum(x * x)
-    s = np.arange(1, n)  # split: low = x[:s], high = x[s:]
-    sse_lo = c2[s - 1] - c1[s - 1] ** 2 / s
-    sse_hi = (c2[-1] - c2[s - 1]) - (c1[-1] - c1[s - 1]) ** 2 / (n - s)
+    s = np.arange(1.0, n)  # split: low = x[:s], high = x[s:]
+    c1_lo, c2_lo = c1[:-1], c2[:-1]  # the cumulative sums at s − 1
+    sse_lo = c2_lo - c1_lo ** 2 / s
+    sse_hi = (c2[-1] - c2_lo) - (c1[-1] - c1_lo) ** 2 / (n - s)
     i = int(np.argmin(sse_lo + sse_hi))
     return 0.5 * (x[i] + x[i + 1])
 
@@ -269,9 +272,19 @@ def classify_and_weigh(res: np.ndarray, delta_l: float, delta_h: float, cap_h1: 
     """Classes and weights of residuals at given thresholds: eq. 24 (capped at (Δl/∂)² with
     ``cap_h1``), 0 for H0. Also used for links outside the residual matrix (graph.py: passive
     range differences, classified at the ranges' Δh)."""
-    cls = classify(res, delta_l, delta_h)
-    w = weight_eq24(res, delta_l, delta_h)
-    if cap_h1:
-        w = np.minimum(w, weight_cap_eq25(res, delta_l))
-    w[cls == int(H0)] = 0.0
+    r = np.abs(np.asarray(res, float))
+    cls = classify(r, delta_l, delta_h)
+    if delta_h <= delta_l:
+        w = weight_eq24(r, delta_l, delta_h)
+        if cap_h1:
+            w = np.minimum(w, weight_cap_eq25(r, delta_l))
+        w[cls == int(H0)] = 0.0
+        return cls, w
+    # eq. 24 and the cap evaluated on the H1 band only: both are 1 below Δl, eq. 24 is 0 from Δh
+    w = np.ones_like(r)
+    mid = (r >= delta_l) & (r < delta_h)
+    rm = r[mid]
+    w_mid = delta_l / rm * ((delta_h - rm) / (delta_h - delta_l)) ** 2
+    w[mid] = np.minimum(w_mid, (delta_l / rm) ** 2) if cap_h1 else w_mid
+    w[r >= delta_h] = 0.0
     return cls, w

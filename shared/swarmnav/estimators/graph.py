@@ -223,11 +223,10 @@ class GraphEstimator(NodeEstimator):
             return None
         return np.asarray(self.smoother.calculateEstimate().atVector(DRAG_KEY), float)
 
-    def _read_estimate(self):
-        est = self.smoother.calculateEstimate()
-        self.pose = est.atPose3(X(self.n))
-        self.vel = np.asarray(est.atVector(V(self.n)), float)
-        self.bias = est.atConstantBias(B(self.n))
+    def _read_estimate(self):  # the epoch's three values only (not the whole window's)
+        sm, n = self.smoother, self.n
+        self.pose, self.bias = sm.calculateEstimatePose3(X(n)), sm.calculateEstimateConstantBias(B(n))
+        self.vel = np.asarray(sm.calculateEstimateVector(V(n)), float)
 
     def _quat(self) -> np.ndarray:
         q = self.pose.rotation().toQuaternion()

@@ -139,12 +139,15 @@ def take_round0(node: GraphEstimator, peers: dict[int, NodeState]) -> tuple[int,
     if not node.round0_pending:
         return tuple(sorted(u for u in node.hood if u in peers))
     node.round0_pending = False
+    known = node.peer_ranges  # (a, b), a ≤ b -> m
     for j, s in peers.items():  # in the peers' order: the first report of a pair's range is kept
         if j in node.hood1 and (s.ranges or s.n_links):  # round-0 states carry ranges and link count
             node.peer_links[j] = max(len(s.ranges), int(s.n_links))
             for o, d in s.ranges.items():
-                node.peer_ranges.setdefault((min(j, o), max(j, o)), float(d))
-                node.hood.add(int(o))
+                pair = (j, o) if j < o else (o, j)
+                if pair not in known:
+                    known[pair] = float(d)
+            node.hood.update(map(int, s.ranges))
     node.hood.update(node.hood1)
     node.hood.discard(me)
     nodes = tuple(sorted(u for u in node.hood if u in peers))
@@ -210,10 +213,12 @@ def _azel_rows(node: GraphEstimator, peers, c: RoundCache):
     # own observations (observer = this node), then the neighbours' observations of this node
     # turned around
     inp = node.inp
-    ai = [i for i, o in enumerate(inp.rel_target) if int(o) in peers]
-    tg = [int(inp.rel_target[i]) for i in ai]
-    sg = [inp.rel_sigma[i] if inp.rel_sigma[i] > 0 else node.rel_sigma for i in ai]
-    z = [(inp.rel_az[i], inp.rel_el[i]) for i in ai]
+    targets, sigma = inp.rel_target.tolist(), inp.rel_sigma.tolist()  # Python numbers: read one by one
+    az, el = inp.rel_az.tolist(), inp.rel_el.tolist()
+    ai = [i for i, o in enumerate(targets) if int(o) in peers]
+    tg = [int(targets[i]) for i in ai]
+    sg = [sigma[i] if sigma[i] > 0 else node.rel_sigma for i in ai]
+    z = [(az[i], el[i]) for i in ai]
     c.n_own_azel = len(tg)
     if node.reverse_azel != "off":
         for j, (az, el, sj) in sorted(node.peer_bearings.items()):

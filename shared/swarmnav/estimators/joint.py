@@ -31,13 +31,25 @@ def azel_observations(nodes: list[int], states: dict, own_uav: int, own_bearings
     target index, z (M, 2) rad, σ² (M,) rad²). ``states``: the peers' round-0 states; the node's own
     observations are ``own_bearings`` (target -> (az, el, σ))."""
     idx = {u: i for i, u in enumerate(nodes)}
-    rows: list[tuple] = []
+    obs: list[int] = []
+    tgt: list[int] = []
+    vals: list[float] = []  # az, el, σ per observation
     for u in nodes:
         b = own_bearings if u == own_uav else getattr(states.get(u), "bearings", None) or {}
         i = idx[u]
-        rows.extend((i, idx[t], az, el, sg * sg) for t, (az, el, sg) in sorted(b.items()) if t in idx and t != u)
-    a = np.array(rows, float).reshape(-1, 5)
-    return a[:, 0].astype(int), a[:, 1].astype(int), a[:, 2:4].copy(), a[:, 4].copy()
+        for t in sorted(b):
+            j = idx.get(t)
+            if j is not None and t != u:
+                obs.append(i)
+                tgt.append(j)
+                vals += b[t]
+    v = np.array(vals, float).reshape(-1, 3)
+    return np.array(obs, int), np.array(tgt, int), v[:, :2].copy(), v[:, 2] * v[:, 2]
+
+
+def _lanes(idx: np.ndarray, width: int) -> np.ndarray:
+    """Flat indices of ``width`` consecutive entries per index: idx·width + 0 … width − 1."""
+    return (idx[:, None] * width + np.arange(width)).ravel()
 
 
 class Scatter:
@@ -45,25 +57,50 @@ class Scatter:
     factors given as index pairs (``ends``: one (ia, ib) per kind, e.g. ranges, then (target,
     observer) of az/el). A factor with block B and gradient v adds B to blocks (a, a) and (b, b),
     −B to (a, b) and (b, a), v to g_a and −v to g_b. Summed per ordered pair first (one
-    ``bincount`` into (n, n, 3, 3)): with S(a, b) = P(a, b) + P(b, a), H(a, b) = −S(a, b) and
-    H(a, a) = Σ_b S(a, b). Built once per snapshot, used by every Gauss–Newton iteration."""
+    ``bincount`` over the q ordered pairs that have a factor either way, sorted by (a, b)): with
+    S(a, b) = P(a, b) + P(b, a), H(a, b) = −S(a, b) and H(a, a) = Σ_b S(a, b) in b order. Built
+    once per snapshot, used by every Gauss–Newton iteration of its solves."""
 
     def __init__(self, n: int, ends: list[tuple[np.ndarray, np.ndarray]]):
         self.n = n
-        pair = np.concatenate([np.asarray(a, int) * n + np.asarray(b, int) for a, b in ends]) if ends else np.zeros(0, int)
-        self.block_idx = (pair[:, None] * 9 + np.arange(9)[None, :]).ravel()
-        self.grad_idx = (pair[:, None] * 3 + np.arange(3)[None, :]).ravel()
+        self.first = np.concatenate([np.asarray(a, int) for a, _ in ends]) if ends else np.zeros(0, int)
+        self.second = np.concatenate([np.asarray(b, int) for _, b in ends]) if ends else np.zeros(0, int)
+        code, reverse_code = self.first * n + self.second, self.second * n + self.first
+        has_factor = np.zeros(n * n, bool)
+        has_factor[code] = has_factor[reverse_code] = True
+        slots = np.flatnonzero(has_factor)  # sorted by (a, b)
+        slot_of = np.zeros(n * n, np.intp)
+        slot_of[slots] = np.arange(len(slots))
+        sa, sb = slots // n, slots % n
+        self.q = len(slots)
+        factor_slot = slot_of[code]
+        self.block_idx = _lanes(factor_slot, 9)
+        self.grad_idx = _lanes(factor_slot, 3)
+        self.reverse = slot_of[sb * n + sa]  # slot of (b, a) per slot (a, b)
+        self.diag_idx = _lanes(sa, 9)
+        self.row_idx, self.col_idx = _lanes(sa, 3), _lanes(sb, 3)
+        # the flat (3n × 3n) H gathered from [−S (q, 9), diagonal blocks (n, 9), 0]: built block-major
+        # (a, b, i, j), then laid out as rows 3a + i, columns 3b + j
+        gather = np.full((n * n, 9), 9 * (self.q + n), np.intp)
+        gather[slots] = np.arange(9 * self.q).reshape(-1, 9)
+        gather[np.arange(n) * (n + 1)] = 9 * self.q + np.arange(9 * n).reshape(n, 9)
+        self.gather = gather.reshape(n, n, 3, 3).transpose(0, 2, 1, 3).ravel()
+        self._zero = np.zeros(1)
 
-    def assemble(self, B: list[np.ndarray], gv: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """H (3n, 3n) and g (3n,) from each kind's symmetric blocks B (m, 3, 3) and gradients
-        gv (m, 3), in the order of ``ends``."""
-        n = self.n
-        P = np.bincount(self.block_idx, np.concatenate([b.ravel() for b in B]), minlength=n * n * 9).reshape(n, n, 3, 3)
-        G = np.bincount(self.grad_idx, np.concatenate([v.ravel() for v in gv]), minlength=n * n * 3).reshape(n, n, 3)
-        S = P + P.transpose(1, 0, 2, 3)  # blocks are symmetric: P(b, a)ᵀ = P(b, a)
-        H = -S
-        H[np.arange(n), np.arange(n)] = S.sum(axis=1)
-        return H.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n), G.sum(axis=1) - G.sum(axis=0)
+    def assemble(self, B: list[np.ndarray], gv: list[np.ndarray], prior_info: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """H (3n, 3n) (+ the priors' block-diagonal information (n, 3, 3)) and g (3n,) from each
+        kind's symmetric blocks B (m, 3, 3) and gradients gv (m, 3), in the order of ``ends``."""
+        n, q = self.n, self.q
+        P = np.bincount(self.block_idx, np.concatenate([b.ravel() for b in B]), minlength=q * 9).reshape(q, 9)
+        S = P + P.take(self.reverse, axis=0)
+        diag = np.bincount(self.diag_idx, S.ravel(), minlength=n * 9)
+        if prior_info is not None:
+            diag = prior_info.ravel() + diag
+        H = np.concatenate((-S.ravel(), diag, self._zero)).take(self.gather)
+        G = np.bincount(self.grad_idx, np.concatenate([v.ravel() for v in gv]), minlength=q * 3)
+        g = np.bincount(self.row_idx, G, minlength=3 * n) - np.bincount(self.col_idx, G, minlength=3 * n)
+        return H.reshape(3 * n, 3 * n), g
 
 
 def solve(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np.ndarray, d: np.ndarray,
@@ -76,30 +113,25 @@ def solve(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np
     the solution is within ~10 µm of converged, measured on paper). A non-finite step keeps the last
     finite solution. ``scatter``: :class:`Scatter` of (ia, ib) and (target, observer), if the caller
     solves the same structure several times (a weight of 0 drops a factor)."""
-    n = len(prior_mean)
+    n, m = len(prior_mean), len(ia)
     x = x0.copy()
     obs, tgt, z, s2 = azel
-    a = np.asarray(w, float) / sig2
-    inv_s2 = 1.0 / s2 if azel_w is None else np.asarray(azel_w, float) / s2
+    a = (np.asarray(w, float) / sig2)[:, None]
+    inv_s2 = (1.0 / s2 if azel_w is None else np.asarray(azel_w, float) / s2)[:, None, None]
     sc = scatter or Scatter(n, [(ia, ib), (tgt, obs)])
-    H0 = np.zeros((n, 3, n, 3))
-    H0[np.arange(n), :, np.arange(n), :] = prior_info
-    H0 = H0.reshape(3 * n, 3 * n)
     for _ in range(iterations):
-        g0 = (prior_info @ (prior_mean - x)[:, :, None])[:, :, 0]
-        dv = x[ia] - x[ib]
+        g0 = (prior_info @ (prior_mean - x)[:, :, None]).ravel()
+        diff = x.take(sc.first, axis=0) - x.take(sc.second, axis=0)  # ranges' p_a − p_b, then az/el's p_tgt − p_obs
+        dv = diff[:m]
         r = np.sqrt((dv * dv).sum(axis=1))
         u = dv / np.maximum(r, 1e-9)[:, None]
-        ua = u * a[:, None]
-        Br = u[:, :, None] * ua[:, None, :]
-        gr = ua * (d - r)[:, None]
-        az, el, J = azel_jacobians(x[tgt] - x[obs])  # J = ∂(az, el)/∂p_tgt = −∂/∂p_obs
-        res = azel_residuals(z, az, el)
-        Jw = J * inv_s2[:, None, None]
-        Ba = J.transpose(0, 2, 1) @ Jw
-        ga = (Jw.transpose(0, 2, 1) @ res[:, :, None])[:, :, 0]
-        H, g = sc.assemble([Br, Ba], [gr, ga])
-        dx = np.linalg.solve(H0 + H, (g + g0).ravel()).reshape(n, 3)
+        ua = u * a
+        az, el, J = azel_jacobians(diff[m:])  # J = ∂(az, el)/∂p_tgt = −∂/∂p_obs
+        Jw = J * inv_s2
+        JwT = Jw.transpose(0, 2, 1)
+        H, g = sc.assemble([u[:, :, None] * ua[:, None, :], J.transpose(0, 2, 1) @ Jw],
+                           [ua * (d - r)[:, None], (JwT @ azel_residuals(z, az, el)[:, :, None])[:, :, 0]], prior_info)
+        dx = np.linalg.solve(H, g + g0).reshape(n, 3)
         if not np.all(np.isfinite(dx)):
             break
         x = x + dx
@@ -109,9 +141,11 @@ def solve(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np
 
 
 def pair_index(ia: np.ndarray, ib: np.ndarray, obs: np.ndarray, tgt: np.ndarray) -> np.ndarray:
-    """For each az/el observation, the index of the ranged pair between its two ends (-1: none)."""
-    where = {(int(a), int(b)): i for i, (a, b) in enumerate(zip(ia.tolist(), ib.tolist()))}
-    return np.array([where.get((min(o, t), max(o, t)), -1) for o, t in zip(obs.tolist(), tgt.tolist())], int)
+    """For each az/el observation, the index of the ranged pair (ia < ib) between its two ends (-1: none)."""
+    n = int(max(ia.max(initial=-1), ib.max(initial=-1), obs.max(initial=-1), tgt.max(initial=-1))) + 1
+    where = np.full(n * n, -1)
+    where[ia * n + ib] = np.arange(len(ia))
+    return where[np.minimum(obs, tgt) * n + np.maximum(obs, tgt)]
 
 
 def snapshot(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np.ndarray, d: np.ndarray,

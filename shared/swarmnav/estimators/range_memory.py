@@ -31,7 +31,9 @@ With report = "round" and no relinked commit only.
 
 from __future__ import annotations
 
+import math
 from collections import deque
+from dataclasses import replace
 
 import numpy as np
 
@@ -75,12 +77,13 @@ class RangeMemory:
         prev = self.chain.get(u)
         if prev is not None and prev[0] == k:
             return
-        if prev is not None and prev[0] == k - 1 and np.all(np.isfinite(v)):
+        v = np.array(v, float)  # a copy
+        if prev is not None and prev[0] == k - 1 and all(map(math.isfinite, v.tolist())):
             S = prev[3] + 0.5 * (prev[2] + v) * (t - prev[1])
-            self.chain[u] = (k, t, np.asarray(v, float).copy(), S, prev[4])
+            self.chain[u] = (k, t, v, S, prev[4])
         else:
             self._cid += 1
-            self.chain[u] = (k, t, np.asarray(v, float).copy(), np.zeros(3), self._cid)
+            self.chain[u] = (k, t, v, np.zeros(3), self._cid)
 
     def begin(self, node, peers: dict, own) -> None:
         """Move the remembered rows to the node's epoch (first round: ``peers`` are round-0 states,
@@ -104,16 +107,18 @@ class RangeMemory:
             lag = node.k - k_old
             if not 1 <= lag <= self.epochs or S_old.get(node.uav, (None,))[0] != me[4]:
                 continue
-            sel = [n for n, o in enumerate(owners) if o in now and S_old.get(int(o), (None,))[0] == self.chain[int(o)][4]]
+            sel = [n for n, o in enumerate(owners.tolist())
+                   if o in now and S_old.get(o, (None,))[0] == self.chain[o][4]]
             if not sel:
                 continue
             o_s = owners[sel]
+            o_list = o_s.tolist()
             d_own = me[3] - S_old[node.uav][1]
-            d_nb = np.array([self.chain[int(o)][3] - S_old[int(o)][1] for o in o_s])
+            d_nb = np.array([self.chain[o][3] for o in o_list]) - np.array([S_old[o][1] for o in o_list])
             lev = levers[sel] - d_own + d_nb
-            rr, _ = ranges(r0_own + lev - np.array([peers[o].pos for o in o_s]))
-            delta = (z[sel] - rr) - np.array([now[o][0] for o in o_s])
-            s2sum = sig2[sel] + np.array([now[o][1] for o in o_s])
+            rr, _ = ranges(r0_own + lev - np.array([peers[o].pos for o in o_list]))
+            delta = (z[sel] - rr) - np.array([now[o][0] for o in o_list])
+            s2sum = sig2[sel] + np.array([now[o][1] for o in o_list])
             q = self.q_hat(lag)  # from earlier epochs only
             self.stats[lag].append((delta, s2sum))
             if q is None:
@@ -131,7 +136,7 @@ class RangeMemory:
         if not live:
             return {}
         slot = {o: i for i, o in enumerate(live)}
-        gi = np.array([slot.get(int(o), -1) for o in c.rng_owner], int)
+        gi = np.array([slot.get(o, -1) for o in c.rng_owner.tolist()], int)
         m = gi >= 0
         gi = gi[m]
         pos = np.array([peers[o].pos for o in live])
@@ -139,30 +144,30 @@ class RangeMemory:
         cnt = np.bincount(gi, minlength=len(live))
         res = np.bincount(gi, c.rng_z[m] - rr, minlength=len(live))
         sig2 = np.bincount(gi, c.rng_sig2[m], minlength=len(live))
-        return {o: (float(res[i] / cnt[i]), float(sig2[i] / cnt[i])) for i, o in enumerate(live) if cnt[i]}
+        res, sig2, cnt = res.tolist(), sig2.tolist(), cnt.tolist()  # Python floats: the same quotients
+        return {o: (res[i] / cnt[i], sig2[i] / cnt[i]) for i, o in enumerate(live) if cnt[i]}
 
     def extend(self, node, L: Links, infl) -> Links:
-        """``L`` (the round's links) with the moved rows of neighbours whose link is H2 now appended to
-        its range rows, each neighbour's covariance × ``infl`` (a number or per node id), and every
-        range row's neighbour index in ``rng_group``."""
+        """A copy of ``L`` (the round's links, unchanged) with the moved rows of neighbours whose link
+        is H2 now appended to its range rows, each neighbour's covariance × ``infl`` (a number or per
+        node id), and every range row's neighbour index in ``rng_group``."""
         c = node.cache
         if self.rows is None or L.rng is None or self.k != node.k:
             return L
         owners, lev, sig2, z = self.rows
-        use = np.array([node.weights.get(int(o), 0.0) >= 1.0 and int(o) in c.idx for o in owners])
+        use = np.array([node.weights.get(o, 0.0) >= 1.0 and o in c.idx for o in owners.tolist()])
         if not use.any():
             return L
-        owners, lev, sig2, z = owners[use], lev[use], sig2[use], z[use]
-        n = np.array([c.idx[int(o)] for o in owners], int)
-        f = np.array([infl(int(o)) for o in owners]) if callable(infl) else np.full(len(n), float(infl))
-        w_cur = np.array([node.weights[o] for o in c.rng_owner])
+        owners, lev, sig2, z = owners[use].tolist(), lev[use], sig2[use], z[use]
+        n = np.array([c.idx[o] for o in owners], int)
+        f = np.array([infl(o) for o in owners]) if callable(infl) else np.full(len(n), float(infl))
+        w_cur = np.array([node.weights[o] for o in c.rng_owner.tolist()])
         g_cur = c.rng_node[w_cur > 0]
         pj, Pj, w, lv, s2, zz = L.rng
-        L.rng = (np.concatenate([pj, node.P_round[n]]), np.concatenate([Pj, node.C_round[n] * f[:, None, None]]),
-                 np.concatenate([w, np.full(len(n), self.weight)]), np.concatenate([lv, lev]),
-                 np.concatenate([s2, sig2]), np.concatenate([zz, z]))
-        L.rng_group = np.concatenate([g_cur, n])
-        return L
+        rng = (np.concatenate([pj, node.P_round[n]]), np.concatenate([Pj, node.C_round[n] * f[:, None, None]]),
+               np.concatenate([w, np.full(len(n), self.weight)]), np.concatenate([lv, lev]),
+               np.concatenate([s2, sig2]), np.concatenate([zz, z]))
+        return replace(L, rng=rng, rng_group=np.concatenate([g_cur, n]))
 
     def report(self, node) -> tuple[np.ndarray, np.ndarray]:
         """The node's reported position and its covariance: its last round's solve (prior, the
@@ -171,7 +176,7 @@ class RangeMemory:
         (neighbours' covariances × 1 in the error model, rows of a neighbour sharing its error).
         The rounds, the broadcasts and the commit do not see the moved rows."""
         infl = node._infl if node.round_infl is None else node.round_infl
-        Lw = self.extend(node, node._links(node.round_infl), infl)
+        Lw = self.extend(node, node.L, infl)  # node.L: the last round's links, node._links(node.round_infl)
         if Lw.rng_group is None:  # no moved row is usable now: the round solution as it is
             H, _, M = normal_equations(node.L, node.p, node._info, node.p_loc, L_true=node._links(1.0))
             return node.p.copy(), sandwich_cov(H, M)

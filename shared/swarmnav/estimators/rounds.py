@@ -85,19 +85,20 @@ def prepare_links(c: RoundCache, P: np.ndarray, C: np.ndarray, weights: dict[int
     L = Links()
     per_node = callable(infl)
     if len(c.rng_owner):
-        w = np.array([weights[o] for o in c.rng_owner])
-        keep = w > 0
-        if keep.any():
-            f = np.array([infl(int(o)) for o in c.rng_owner]) if per_node else np.full(len(w), infl)
+        owners = c.rng_owner.tolist()
+        w = np.array([weights[o] for o in owners])
+        keep = _kept(w)
+        if keep is not None:
+            f = np.array([infl(o) for o in owners]) if per_node else np.full(len(w), infl)
             n = c.rng_node[keep]
             L.rng = (P[n], C[n] * f[keep][:, None, None], w[keep], c.rng_lever[keep], c.rng_sig2[keep], c.rng_z[keep])
     if c.azel_target is not None:
         na = len(c.azel_target) if commit_azel is None else commit_azel
-        tg = c.azel_target[:na]
-        w = np.ones(len(tg)) if azel_weight == "full" else np.array([weights.get(int(o), 1.0) for o in tg])
-        keep = w > 0
-        if keep.any():
-            f = np.array([infl(int(o)) for o in tg]) if per_node else np.full(len(w), infl)
+        tg = c.azel_target[:na].tolist()
+        w = np.ones(len(tg)) if azel_weight == "full" else np.array([weights.get(o, 1.0) for o in tg])
+        keep = _kept(w)
+        if keep is not None:
+            f = np.array([infl(o) for o in tg]) if per_node else np.full(len(w), infl)
             n = c.azel_node[:na][keep]
             L.azel = (P[n], C[n] * f[keep][:, None, None], w[keep], c.azel_sig2[:na][keep], c.azel_z[:na][keep])
     if c.tdoa:
@@ -105,6 +106,14 @@ def prepare_links(c: RoundCache, P: np.ndarray, C: np.ndarray, weights: dict[int
                     if kind == "peer" else (kind, x, None) for kind, x, lev in ends], z, sig2, w)
                   for (ends, z, sig2), w in zip(c.tdoa, tdoa_w) if w > 0]
     return L
+
+
+def _kept(w: np.ndarray) -> slice | np.ndarray | None:
+    """The rows with weight > 0: every row (a slice: no copies), a mask, or None when none is."""
+    keep = w > 0
+    if keep.all():
+        return slice(None) if len(w) else None
+    return keep if keep.any() else None
 
 
 def normal_equations(L: Links, p: np.ndarray, info: np.ndarray | None = None, p_loc: np.ndarray | None = None,
@@ -164,7 +173,10 @@ def inv2(C: np.ndarray) -> np.ndarray:
     a, b, c, d = C[:, 0, 0], C[:, 0, 1], C[:, 1, 0], C[:, 1, 1]
     det = a * d - b * c
     out = np.empty_like(C)
-    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = d / det, -b / det, -c / det, a / det
+    out[:, 0, 0], out[:, 1, 1] = d, a
+    np.negative(C[:, 0, 1:], out=out[:, 0, 1:])  # −b
+    np.negative(C[:, 1, :1], out=out[:, 1, :1])  # −c
+    out /= det[:, None, None]  # (−b)/det = −(b/det): the same bits
     return out
 
 
@@ -188,7 +200,7 @@ def gauss_newton(p: np.ndarray, normal_eq: Callable[[np.ndarray], tuple], iterat
         if not np.all(np.isfinite(dp)):
             break
         p = p + dp
-        if np.linalg.norm(dp) < 1e-4:
+        if np.sqrt(dp @ dp) < 1e-4:  # = np.linalg.norm(dp)
             break
     return p
 

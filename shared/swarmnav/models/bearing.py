@@ -34,9 +34,10 @@ def azel_jacobians(d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     h2 = np.maximum(e * e + nn * nn, 1e-12)
     h = np.sqrt(h2)
     r2 = h2 + uu * uu
+    neg_n, hr2 = -nn, h * r2
     J = np.empty((len(e), 2, 3))
-    J[:, 0, 0], J[:, 0, 1], J[:, 0, 2] = -nn / h2, e / h2, 0.0
-    J[:, 1, 0], J[:, 1, 1], J[:, 1, 2] = -e * uu / (h * r2), -nn * uu / (h * r2), h / r2
+    J[:, 0, 0], J[:, 0, 1], J[:, 0, 2] = neg_n / h2, e / h2, 0.0
+    J[:, 1, 0], J[:, 1, 1], J[:, 1, 2] = -e * uu / hr2, neg_n * uu / hr2, h / r2
     return np.arctan2(nn, e), np.arctan2(uu, h), J
 
 
