@@ -9,7 +9,15 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+
+# One BLAS thread (before numpy loads): the estimators solve many small systems one after another,
+# where OpenBLAS's threads only add overhead (in-process scale N = 100: 314 -> 142 CPU-s, 161 -> 142 s
+# wall), and the UAV processes of a launch run single-threaded too (deploy/launcher.py), so evaluate
+# computes as they do. A value the user set is kept.
+for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
 
 COMMANDS = {
     "simulate": "services.commands.simulate",
