@@ -274,17 +274,9 @@ def classify_and_weigh(res: np.ndarray, delta_l: float, delta_h: float, cap_h1: 
     range differences, classified at the ranges' Δh)."""
     r = np.abs(np.asarray(res, float))
     cls = classify(r, delta_l, delta_h)
-    if delta_h <= delta_l:
-        w = weight_eq24(r, delta_l, delta_h)
-        if cap_h1:
-            w = np.minimum(w, weight_cap_eq25(r, delta_l))
-        w[cls == int(H0)] = 0.0
-        return cls, w
-    # eq. 24 and the cap evaluated on the H1 band only: both are 1 below Δl, eq. 24 is 0 from Δh
-    w = np.ones_like(r)
-    mid = (r >= delta_l) & (r < delta_h)
-    rm = r[mid]
-    w_mid = delta_l / rm * ((delta_h - rm) / (delta_h - delta_l)) ** 2
-    w[mid] = np.minimum(w_mid, (delta_l / rm) ** 2) if cap_h1 else w_mid
-    w[r >= delta_h] = 0.0
+    w = weight_eq24(r, delta_l, delta_h)
+    if cap_h1:  # the cap only binds on the H1 band: both are 1 below Δl, eq. 24 is 0 from Δh
+        band = (r > delta_l) & (w > 0)
+        w[band] = np.minimum(w[band], weight_cap_eq25(r[band], delta_l))
+    w[cls == int(H0)] = 0.0
     return cls, w
