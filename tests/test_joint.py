@@ -82,3 +82,61 @@ def test_joint_needs_the_round0_priors():
     with pytest.raises(ValueError, match="round_solver"):
         validate_tuning({"round_solver": "jacobi"})
     assert validate_tuning({"round_solver": "joint"}) == {"round_solver": "joint"}
+
+
+def test_the_c_kernels_normal_equations_are_the_gauss_newton_step_of_the_cost():
+    """_joint_kernel.joint_system: g = −½∇cost and H = JᵀWJ of the whitened residuals (J by central
+    differences of an independent numpy cost), and H symmetric."""
+    from swarmnav.estimators import _joint_kernel
+
+    truth, mean, info, ia, ib, d, w, (obs, tgt, z, s2) = _problem(5)
+    n, sig2 = len(mean), 0.01
+    aw = np.linspace(0.3, 1.0, len(obs))
+    x = mean + 0.5  # away from the priors: every term non-zero
+    Ls = np.linalg.cholesky(info)
+
+    def whitened(v):
+        y = v.reshape(n, 3)
+        pr = np.einsum("nji,nj->ni", Ls, mean - y).ravel()
+        rr = np.sqrt(w / sig2) * (d - np.linalg.norm(y[ia] - y[ib], axis=1))
+        dv = y[tgt] - y[obs]
+        az, el = np.arctan2(dv[:, 1], dv[:, 0]), np.arctan2(dv[:, 2], np.hypot(dv[:, 0], dv[:, 1]))
+        ra = np.sqrt(aw / s2)[:, None] * np.column_stack([wrap_angle(z[:, 0] - az), z[:, 1] - el])
+        return np.concatenate([pr, rr, ra.ravel()])
+
+    eps = 1e-6
+    J = np.column_stack([(whitened(x.ravel() + eps * e) - whitened(x.ravel() - eps * e)) / (2 * eps)
+                         for e in np.eye(3 * n)])
+    r = whitened(x.ravel())
+    H, g = np.empty((3 * n, 3 * n)), np.empty(3 * n)
+    _joint_kernel.joint_system(x, mean, info, ia.astype(np.int64), ib.astype(np.int64), d, w / sig2,
+                               obs.astype(np.int64), tgt.astype(np.int64), z, aw / s2, H, g)
+    np.testing.assert_allclose(H, J.T @ J, rtol=1e-5, atol=1e-3)
+    np.testing.assert_allclose(g, -J.T @ r, rtol=1e-5, atol=1e-3)
+    assert np.array_equal(H, H.T) or np.abs(H - H.T).max() < 1e-9 * np.abs(H).max()
+
+
+def test_the_c_kernel_rejects_bad_arrays_without_touching_memory():
+    from swarmnav.estimators import _joint_kernel
+
+    x = np.zeros((2, 3))
+    info = np.tile(np.eye(3), (2, 1, 1))
+    one, idx = np.ones(1), np.array([0], np.int64)
+    H, g = np.empty((6, 6)), np.empty(6)
+    none_i, none_f = np.zeros(0, np.int64), np.zeros(0)
+    ok = (x, x, info, idx, idx + 1, one, one, none_i, none_i, np.zeros((0, 2)), none_f, H, g)
+    _joint_kernel.joint_system(*ok)
+    bad = {3: np.array([5], np.int64),        # range end outside the n nodes
+           4: np.array([1.0]),                # float indices
+           6: np.ones(2),                     # weights of another length
+           11: np.empty((5, 5)),              # H of the wrong size
+           0: np.zeros((2, 3), np.float32)}   # wrong dtype
+    for i, arr in bad.items():
+        args = list(ok)
+        args[i] = arr
+        with pytest.raises(ValueError):
+            _joint_kernel.joint_system(*args)
+    with pytest.raises((ValueError, TypeError)):  # read-only output
+        ro = np.empty(6)
+        ro.flags.writeable = False
+        _joint_kernel.joint_system(*ok[:12], ro)
