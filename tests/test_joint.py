@@ -85,9 +85,9 @@ def test_joint_needs_the_round0_priors():
 
 
 def test_the_c_kernels_normal_equations_are_the_gauss_newton_step_of_the_cost():
-    """_joint_kernel.joint_system: g = −½∇cost and H = JᵀWJ of the whitened residuals (J by central
+    """_kernels.joint_system: g = −½∇cost and H = JᵀWJ of the whitened residuals (J by central
     differences of an independent numpy cost), and H symmetric."""
-    from swarmnav.estimators import _joint_kernel
+    from swarmnav.estimators import _kernels
 
     truth, mean, info, ia, ib, d, w, (obs, tgt, z, s2) = _problem(5)
     n, sig2 = len(mean), 0.01
@@ -109,7 +109,7 @@ def test_the_c_kernels_normal_equations_are_the_gauss_newton_step_of_the_cost():
                          for e in np.eye(3 * n)])
     r = whitened(x.ravel())
     H, g = np.empty((3 * n, 3 * n)), np.empty(3 * n)
-    _joint_kernel.joint_system(x, mean, info, ia.astype(np.int64), ib.astype(np.int64), d, w / sig2,
+    _kernels.joint_system(x, mean, info, ia.astype(np.int64), ib.astype(np.int64), d, w / sig2,
                                obs.astype(np.int64), tgt.astype(np.int64), z, aw / s2, H, g)
     np.testing.assert_allclose(H, J.T @ J, rtol=1e-5, atol=1e-3)
     np.testing.assert_allclose(g, -J.T @ r, rtol=1e-5, atol=1e-3)
@@ -117,7 +117,7 @@ def test_the_c_kernels_normal_equations_are_the_gauss_newton_step_of_the_cost():
 
 
 def test_the_c_kernel_rejects_bad_arrays_without_touching_memory():
-    from swarmnav.estimators import _joint_kernel
+    from swarmnav.estimators import _kernels
 
     x = np.zeros((2, 3))
     info = np.tile(np.eye(3), (2, 1, 1))
@@ -125,7 +125,7 @@ def test_the_c_kernel_rejects_bad_arrays_without_touching_memory():
     H, g = np.empty((6, 6)), np.empty(6)
     none_i, none_f = np.zeros(0, np.int64), np.zeros(0)
     ok = (x, x, info, idx, idx + 1, one, one, none_i, none_i, np.zeros((0, 2)), none_f, H, g)
-    _joint_kernel.joint_system(*ok)
+    _kernels.joint_system(*ok)
     bad = {3: np.array([5], np.int64),        # range end outside the n nodes
            4: np.array([1.0]),                # float indices
            6: np.ones(2),                     # weights of another length
@@ -135,8 +135,8 @@ def test_the_c_kernel_rejects_bad_arrays_without_touching_memory():
         args = list(ok)
         args[i] = arr
         with pytest.raises(ValueError):
-            _joint_kernel.joint_system(*args)
+            _kernels.joint_system(*args)
     with pytest.raises((ValueError, TypeError)):  # read-only output
         ro = np.empty(6)
         ro.flags.writeable = False
-        _joint_kernel.joint_system(*ok[:12], ro)
+        _kernels.joint_system(*ok[:12], ro)

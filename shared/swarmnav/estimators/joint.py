@@ -11,7 +11,7 @@ covariance × 0 in the link noise) converge to; solving it directly takes one ro
 (and no covariance inflation to keep the iteration stable). The double-threshold test is iterated
 with it (IRLS): weights from the residuals at the priors, solve, weights at the solution, solve.
 
-Units and frames: positions ENU (m), angles rad. numpy and one C kernel (_joint_kernel.c, the normal
+Units and frames: positions ENU (m), angles rad. numpy and one C kernel (_kernels.c, the normal
 equations of a Gauss–Newton step): no I/O, no gtsam.
 """
 
@@ -24,7 +24,7 @@ import numpy as np
 
 from scipy.linalg.lapack import dposv as _dposv
 
-from . import _joint_kernel  # C: built by `make setup` (setup.py)
+from . import _kernels  # C: built by `make setup` (setup.py)
 from . import detection as det
 
 
@@ -58,7 +58,7 @@ def solve(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np
     (observer, target, z, σ²) (:func:`azel_observations`) with weights ``azel_w`` (None: 1); from x0,
     until a step is below ``tol_m`` (Gauss–Newton converges quadratically here: after a 1 mm step
     the solution is within ~10 µm of converged, measured on paper). A non-finite step keeps the last
-    finite solution. The normal equations of each step come from the C kernel ``_joint_kernel``
+    finite solution. The normal equations of each step come from the C kernel ``_kernels``
     (the models of uwb_range and bearing, one loop over the factors: ~40 numpy calls less per step);
     H is symmetric positive definite (every node has a prior), solved by Cholesky (LAPACK dposv),
     LU where Cholesky fails (a degenerate set)."""
@@ -73,7 +73,7 @@ def solve(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np
             np.ascontiguousarray((1.0 if azel_w is None else np.asarray(azel_w, float)) / np.asarray(s2, float)))
     H, g = np.empty((3 * n, 3 * n)), np.empty(3 * n)
     for _ in range(iterations):
-        _joint_kernel.joint_system(x, *args, H, g)
+        _kernels.joint_system(x, *args, H, g)
         dx = _spd_solve(H, g).reshape(n, 3)
         if not np.all(np.isfinite(dx)):
             break

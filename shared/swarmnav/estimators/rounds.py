@@ -21,8 +21,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import _kernels  # C: built by `make setup` (setup.py)
 from . import detection as det
-from ..models.bearing import azel_jacobians, azel_residuals, noise_with_target
+from ..models.bearing import azel_jacobians, noise_with_target
 from ..models.tdoa import tdoa_h
 from ..models.uwb_range import ranges, variance_with_peer
 
@@ -128,29 +129,8 @@ def normal_equations(L: Links, p: np.ndarray, info: np.ndarray | None = None, p_
         H, gv = np.zeros((3, 3)), np.zeros(3)
     else:
         H, gv = info.copy(), info @ (p_loc - p)
-    meat = None if L_true is None else (np.zeros((3, 3)) if info is None else info.copy())
-    if L.rng is not None:
-        pj, Pj, w, lev, sig2, z = L.rng
-        rr, u = ranges(p + lev - pj)
-        var = variance_with_peer(sig2, u, Pj)
-        a = w / var
-        H += (u * a[:, None]).T @ u
-        gv += u.T @ (a * (z - rr))
-        if L_true is not None and L.rng_group is None:
-            meat += (u * (a * a * variance_with_peer(sig2, u, L_true.rng[1]))[:, None]).T @ u
-        elif L_true is not None:
-            meat += grouped_range_meat(u, a, sig2, L_true.rng[1], L.rng_group)
-    if L.azel is not None:
-        pt, Pt, wt, st2, z = L.azel
-        az, el, Jt = azel_jacobians(pt - p)
-        res = azel_residuals(z, az, el)
-        Ci = inv2(noise_with_target(Jt, Pt, st2)) * wt[:, None, None]
-        # ∂h/∂p = −Jt: H += Jtᵀ Ci Jt, g += −Jtᵀ Ci res (one matmul per sum: the stacks' sums in C)
-        CiJ = Ci @ Jt
-        H += Jt.reshape(-1, 3).T @ CiJ.reshape(-1, 3)
-        gv -= CiJ.reshape(-1, 3).T @ res.ravel()
-        if L_true is not None:
-            meat += np.einsum("mji,mjk,mkl->il", CiJ, noise_with_target(Jt, L_true.azel[1], st2), CiJ)
+    _kernels.own_system(np.ascontiguousarray(p, float), *_rng_arrays(L.rng), *_azel_arrays(L.azel), H, gv)
+    meat = None if L_true is None else link_meat(L, p, L_true, info)
     tdoa_t = L_true.tdoa if L_true is not None else [None] * len(L.tdoa)
     for (ends, z, sig2, w), true in zip(L.tdoa, tdoa_t):
         # own position p: this node's tag(s) among the three; neighbours' broadcast covariance
@@ -165,6 +145,41 @@ def normal_equations(L: Links, p: np.ndarray, info: np.ndarray | None = None, p_
             var_t = sig2 + sum(gi @ Ce @ gi for (kind, _, Ce), gi in zip(true[0], grads) if kind == "peer")
             meat += (w * w * var_t / var ** 2) * np.outer(j, j)
     return (H, gv) if L_true is None else (H, gv, meat)
+
+
+_NONE = (np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+_NONE_AZEL = (np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0), np.zeros((0, 2)))
+
+
+def _rng_arrays(rng: tuple | None) -> tuple:
+    """(p_j, P_j, w, lever, σ², z) as C-contiguous float64 arrays for the C kernel (empty: none)."""
+    return _NONE if rng is None else tuple(np.ascontiguousarray(a, float) for a in rng)
+
+
+def _azel_arrays(azel: tuple | None) -> tuple:
+    """(p_t, P_t, w, σ², z) as C-contiguous float64 arrays for the C kernel (empty: none)."""
+    return _NONE_AZEL if azel is None else tuple(np.ascontiguousarray(a, float) for a in azel)
+
+
+def link_meat(L: Links, p: np.ndarray, L_true: Links, info: np.ndarray | None) -> np.ndarray:
+    """The sandwich "meat" M = Σ JᵀW·R·WJ (+ info) of the range and az/el links ``L`` at p, R from
+    the neighbours' covariances in ``L_true`` (:func:`normal_equations`; the tdoa rows' share is
+    added there)."""
+    meat = np.zeros((3, 3)) if info is None else info.copy()
+    if L.rng is not None:
+        pj, Pj, w, lev, sig2, z = L.rng
+        _, u = ranges(p + lev - pj)
+        a = w / variance_with_peer(sig2, u, Pj)
+        if L.rng_group is None:
+            meat += (u * (a * a * variance_with_peer(sig2, u, L_true.rng[1]))[:, None]).T @ u
+        else:
+            meat += grouped_range_meat(u, a, sig2, L_true.rng[1], L.rng_group)
+    if L.azel is not None:
+        pt, Pt, wt, st2, z = L.azel
+        _, _, Jt = azel_jacobians(pt - p)
+        CiJ = (inv2(noise_with_target(Jt, Pt, st2)) * wt[:, None, None]) @ Jt
+        meat += np.einsum("mji,mjk,mkl->il", CiJ, noise_with_target(Jt, L_true.azel[1], st2), CiJ)
+    return meat
 
 
 def inv2(C: np.ndarray) -> np.ndarray:

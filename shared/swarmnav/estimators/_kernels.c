@@ -1,4 +1,10 @@
-/* The joint snapshot's normal equations in C (joint.py :func:`solve`).
+/* The estimators' C kernels: the Gauss-Newton normal equations of the cooperative solves.
+
+   joint_system  the joint snapshot's (joint.py :func:`solve`), every position of a neighbourhood;
+   own_system    one node's own position against its neighbours' broadcasts (rounds.py
+                 :func:`normal_equations`: the round solves, the commit, the reported solve).
+
+   joint_system:
 
    One Gauss-Newton iteration of the neighbourhood snapshot builds H (3n x 3n) and g (3n) from n
    Gaussian position priors, m range factors and M az/el factors (eq. 27). In numpy that takes ~40
@@ -142,14 +148,104 @@ done:
     return ret;
 }
 
+
+/* own_system(p, pj, Pj, w, lev, sig2, z, pt, Pt, wt, st2, zt, H, g): add to H (3, 3) and g (3,) the
+   range and az/el factors of one node's position p (3,) against its neighbours (rounds.py):
+     range  k: δ = p + lev_k - pj_k, h = |δ|, u = δ/max(h, 1e-9), var = σ²_k + uᵀ Pj_k u (the
+               neighbour's covariance along the line of sight), a = w_k/var:
+               H += a u uᵀ, g += a u (z_k - h)
+     az/el k: δ = pt_k - p, J = ∂(az, el)/∂pt (2 x 3) (∂/∂p = -J), C = J Pt_k Jᵀ + σ²_k I,
+               Ci = w_k C⁻¹, res = (wrap(z_az - az), z_el - el): H += Jᵀ Ci J, g -= Jᵀ Ci res
+   The caller initialises H and g (the prior's Λ and Λ(p_loc - p), or zeros). */
+static PyObject *own_system(PyObject *self, PyObject *args) {
+    PyObject *o[14];
+    static const char *names[14] = {"p", "pj", "Pj", "w", "lev", "sig2", "z", "pt", "Pt", "wt", "st2", "zt",
+                                    "H", "g"};
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7],
+                          &o[8], &o[9], &o[10], &o[11], &o[12], &o[13]))
+        return NULL;
+    buf_t b[14];
+    int i;
+    PyObject *ret = NULL;
+    for (i = 0; i < 14; i++) b[i].held = 0;
+    for (i = 0; i < 14; i++)
+        if (get_buf(o[i], &b[i], "d", i >= 12, names[i]) < 0) goto done;
+    Py_ssize_t R = b[3].b.len / 8, A = b[9].b.len / 8;
+    if (b[0].b.len != 24 || b[1].b.len != R * 24 || b[2].b.len != R * 72 || b[4].b.len != R * 24 ||
+        b[5].b.len != R * 8 || b[6].b.len != R * 8 || b[7].b.len != A * 24 || b[8].b.len != A * 72 ||
+        b[10].b.len != A * 8 || b[11].b.len != A * 16 || b[12].b.len != 72 || b[13].b.len != 24) {
+        PyErr_SetString(PyExc_ValueError, "own_system: inconsistent array sizes");
+        goto done;
+    }
+    const double *p = b[0].b.buf, *pj = b[1].b.buf, *Pj = b[2].b.buf, *w = b[3].b.buf, *lev = b[4].b.buf,
+                 *sig2 = b[5].b.buf, *z = b[6].b.buf, *pt = b[7].b.buf, *Pt = b[8].b.buf, *wt = b[9].b.buf,
+                 *st2 = b[10].b.buf, *zt = b[11].b.buf;
+    double *H = b[12].b.buf, *g = b[13].b.buf;
+    for (Py_ssize_t k = 0; k < R; k++) {
+        double d[3], u[3];
+        for (int q = 0; q < 3; q++) d[q] = p[q] + lev[3 * k + q] - pj[3 * k + q];
+        double h = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+        double hh = h > 1e-9 ? h : 1e-9;
+        for (int q = 0; q < 3; q++) u[q] = d[q] / hh;
+        const double *P = Pj + 9 * k;
+        double var = sig2[k];
+        for (int q = 0; q < 3; q++)
+            var += u[q] * (P[3 * q] * u[0] + P[3 * q + 1] * u[1] + P[3 * q + 2] * u[2]);
+        double a = w[k] / var, res = z[k] - h;
+        for (int q = 0; q < 3; q++) {
+            double ua = u[q] * a;
+            g[q] += ua * res;
+            for (int s = 0; s < 3; s++) H[3 * q + s] += ua * u[s];
+        }
+    }
+    for (Py_ssize_t k = 0; k < A; k++) {
+        double e = pt[3 * k] - p[0], nn = pt[3 * k + 1] - p[1], uu = pt[3 * k + 2] - p[2];
+        double h2 = e * e + nn * nn;
+        if (h2 < 1e-12) h2 = 1e-12;
+        double h = sqrt(h2), r2 = h2 + uu * uu, hr2 = h * r2;
+        double J[6] = {-nn / h2, e / h2, 0.0, -e * uu / hr2, -nn * uu / hr2, h / r2};
+        const double *P = Pt + 9 * k;
+        double JP[6];  /* J P (2 x 3) */
+        for (int r = 0; r < 2; r++)
+            for (int s = 0; s < 3; s++)
+                JP[3 * r + s] = J[3 * r] * P[s] + J[3 * r + 1] * P[3 + s] + J[3 * r + 2] * P[6 + s];
+        double c00 = JP[0] * J[0] + JP[1] * J[1] + JP[2] * J[2] + st2[k];
+        double c01 = JP[0] * J[3] + JP[1] * J[4] + JP[2] * J[5];
+        double c10 = JP[3] * J[0] + JP[4] * J[1] + JP[5] * J[2];
+        double c11 = JP[3] * J[3] + JP[4] * J[4] + JP[5] * J[5] + st2[k];
+        double det = c00 * c11 - c01 * c10;
+        double i00 = wt[k] * c11 / det, i01 = -wt[k] * c01 / det, i10 = -wt[k] * c10 / det,
+               i11 = wt[k] * c00 / det;
+        double res0 = wrap_angle(zt[2 * k] - atan2(nn, e)), res1 = zt[2 * k + 1] - atan2(uu, h);
+        double CJ[6];  /* Ci J (2 x 3) */
+        for (int s = 0; s < 3; s++) {
+            CJ[s] = i00 * J[s] + i01 * J[3 + s];
+            CJ[3 + s] = i10 * J[s] + i11 * J[3 + s];
+        }
+        for (int q = 0; q < 3; q++) {
+            g[q] -= CJ[q] * res0 + CJ[3 + q] * res1;
+            for (int s = 0; s < 3; s++) H[3 * q + s] += J[q] * CJ[s] + J[3 + q] * CJ[3 + s];
+        }
+    }
+    ret = Py_None;
+    Py_INCREF(ret);
+done:
+    for (i = 0; i < 14; i++)
+        if (b[i].held) PyBuffer_Release(&b[i].b);
+    return ret;
+}
+
 static PyMethodDef methods[] = {
     {"joint_system", joint_system, METH_VARARGS,
      "joint_system(x, prior_mean, prior_info, ia, ib, d, a, obs, tgt, z, c, H, g): fill H (3n, 3n) and g (3n,) "
      "of the joint snapshot's Gauss-Newton step at x (n, 3); a = range weight / sigma^2 (m,), c = az/el "
      "weight / sigma^2 (M,). float64 / int64, C-contiguous."},
+    {"own_system", own_system, METH_VARARGS,
+     "own_system(p, pj, Pj, w, lev, sig2, z, pt, Pt, wt, st2, zt, H, g): add the range and az/el factors of "
+     "one position p (3,) against its neighbours to H (3, 3) and g (3,). float64, C-contiguous."},
     {NULL, NULL, 0, NULL}};
 
-static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_joint_kernel",
-                                    "The joint snapshot's normal equations (joint.py).", -1, methods};
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",
+                                    "The cooperative solves' normal equations (joint.py, rounds.py).", -1, methods};
 
-PyMODINIT_FUNC PyInit__joint_kernel(void) { return PyModule_Create(&module); }
+PyMODINIT_FUNC PyInit__kernels(void) { return PyModule_Create(&module); }

@@ -1,0 +1,71 @@
+"""The own-position solve's normal equations (estimators/rounds.py, C kernel ``own_system``)."""
+
+import numpy as np
+import pytest
+
+from swarmnav.estimators import _kernels
+from swarmnav.estimators.rounds import Links, normal_equations
+from swarmnav.models.base import wrap_angle
+
+
+def _links(seed: int):
+    rng = np.random.default_rng(seed)
+    p = rng.uniform([0, 0, 100], [300, 300, 200])
+    R, A = 6, 4
+    pj = p + rng.normal(0, 80, (R, 3))
+    B = rng.normal(size=(R, 3, 3))
+    Pj = np.einsum("nij,nkj->nik", B, B) * 0.05 + np.eye(3) * 0.01
+    w, lev, sig2 = rng.uniform(0.2, 1, R), rng.normal(0, 0.2, (R, 3)), np.full(R, 0.01)
+    z = np.linalg.norm(p + lev - pj, axis=1) + rng.normal(0, 0.3, R)
+    pt = p + rng.normal(0, 80, (A, 3))
+    C = rng.normal(size=(A, 3, 3))
+    Pt = np.einsum("nij,nkj->nik", C, C) * 0.05 + np.eye(3) * 0.01
+    wt, st2 = rng.uniform(0.2, 1, A), np.full(A, 1e-4)
+    d = pt - p
+    zt = np.column_stack([np.arctan2(d[:, 1], d[:, 0]), np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1]))])
+    zt += rng.normal(0, 0.02, zt.shape)
+    return p, Links(rng=(pj, Pj, w, lev, sig2, z), azel=(pt, Pt, wt, st2, zt))
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_normal_equations_are_the_gauss_newton_step_of_the_links_cost(seed):
+    """H = JᵀWJ and g = −JᵀWr of the links' residuals r(p), J by central differences, W the
+    weight over the noise with the neighbour's covariance along the Jacobian (held at p)."""
+    p, L = _links(seed)
+    pj, Pj, w, lev, sig2, z = L.rng
+    pt, Pt, wt, st2, zt = L.azel
+    info = np.diag([2.0, 3.0, 1.0])
+    p_loc = p + np.array([0.3, -0.2, 0.5])
+
+    def res(q):
+        rr = z - np.linalg.norm(q + lev - pj, axis=1)
+        d = pt - q
+        az, el = np.arctan2(d[:, 1], d[:, 0]), np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1]))
+        return rr, np.column_stack([wrap_angle(zt[:, 0] - az), zt[:, 1] - el])
+
+    eps = 1e-6
+    cols = [tuple((a - b) / (2 * eps) for a, b in zip(res(p + eps * e), res(p - eps * e))) for e in np.eye(3)]
+    Jr = np.column_stack([c[0] for c in cols])                # (R, 3)
+    Ja = np.stack([c[1] for c in cols], axis=-1)              # (A, 2, 3)
+    var = sig2 + np.einsum("ni,nij,nj->n", Jr, Pj, Jr)        # ∂r/∂p = −u: the same quadratic form
+    Ca = np.eye(2) * st2[:, None, None] + Ja @ Pt @ Ja.transpose(0, 2, 1)
+    Wa = np.linalg.inv(Ca) * wt[:, None, None]
+    rr, ra = res(p)
+    H_ref = info + (Jr * (w / var)[:, None]).T @ Jr + np.einsum("mji,mjk,mkl->il", Ja, Wa, Ja)
+    g_ref = info @ (p_loc - p) - Jr.T @ (w / var * rr) - np.einsum("mji,mjk,mk->i", Ja, Wa, ra)
+    H, g = normal_equations(L, p, info, p_loc)
+    np.testing.assert_allclose(H, H_ref, rtol=1e-5)
+    np.testing.assert_allclose(g, g_ref, rtol=1e-5, atol=1e-6)
+
+
+def test_own_system_rejects_inconsistent_arrays():
+    p, L = _links(3)
+    H, g = np.zeros((3, 3)), np.zeros(3)
+    args = [np.asarray(a, float) for a in L.rng] + [np.asarray(a, float) for a in L.azel]
+    _kernels.own_system(p, *args, H, g)
+    bad = list(args)
+    bad[1] = bad[1][:3]  # covariances of 3 links for 6 ranges
+    with pytest.raises(ValueError):
+        _kernels.own_system(p, *bad, H, g)
+    with pytest.raises(ValueError):
+        _kernels.own_system(p, *args, np.zeros((2, 2)), g)
