@@ -140,3 +140,25 @@ def test_the_c_kernel_rejects_bad_arrays_without_touching_memory():
         ro = np.empty(6)
         ro.flags.writeable = False
         _kernels.joint_system(*ok[:12], ro)
+
+
+def test_azel_observations_takes_every_bearing_inside_the_neighbourhood_in_order():
+    """Observer in ``nodes`` order, then target; targets outside the neighbourhood, a bearing of
+    itself and a node without a state are left out."""
+    from swarmnav.estimators.base import NodeState
+
+    rng = np.random.default_rng(7)
+
+    def state(u, targets):
+        b = {int(t): (float(rng.uniform(-3, 3)), float(rng.uniform(-1, 1)), 0.01 * (1 + u)) for t in targets}
+        return NodeState(u, 3, 0, 3.0, np.zeros(3), np.eye(3), np.zeros(3), bearings=b)
+
+    nodes = [2, 4, 5, 9]
+    states = {4: state(4, [9, 2, 7, 4]), 5: state(5, []), 9: state(9, [5, 11]), 12: state(12, [2])}
+    own = state(2, [5, 4, 3])
+    obs, tgt, z, s2 = joint.azel_observations(nodes, states, own)
+    expect = [(2, 4), (2, 5), (4, 2), (4, 9), (9, 5)]  # (observer id, target id)
+    assert [(nodes[o], nodes[t]) for o, t in zip(obs, tgt)] == expect
+    for (u, t), zz, ss in zip(expect, z, s2):
+        az, el, sig = (own if u == 2 else states[u]).bearings[t]
+        assert tuple(zz) == (az, el) and ss == sig * sig

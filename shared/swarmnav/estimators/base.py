@@ -21,6 +21,7 @@ from __future__ import annotations
 import abc
 from dataclasses import dataclass, field
 from enum import IntEnum
+from functools import cached_property
 
 import numpy as np
 
@@ -69,6 +70,18 @@ class NodeState:
     # round 0: the sender's smoothed positions (ENU m) of the epochs in its relink window, epoch k
     # -> (3,) (relink.py RelinkedCommit; empty when relinking is off)
     traj: dict[int, np.ndarray] = field(default_factory=dict)
+
+    @cached_property
+    def bearing_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """``bearings`` as arrays, sorted by target: (targets (K,) int, (az, el, σ) (K, 3) rad) —
+        read by every receiver's joint snapshot (joint.azel_observations), built once per state."""
+        if not self.bearings:
+            return _NO_TARGETS, _NO_BEARINGS
+        targets = sorted(self.bearings)
+        return np.array(targets, np.int64), np.array([self.bearings[t] for t in targets], float).reshape(-1, 3)
+
+
+_NO_TARGETS, _NO_BEARINGS = np.zeros(0, np.int64), np.zeros((0, 3))
 
 
 @dataclass

@@ -94,6 +94,7 @@ class GraphEstimator(NodeEstimator):
         self.round_solver, self.joint_passes = t.round_solver, t.joint_irls_passes  # "joint": joint.py in round 1
         self.hood_radius = t.neighbourhood_radius_m  # None: the whole swarm is every node's neighbourhood
         self.gn_iters, self.report, self.commit_weight = t.gn_iterations, t.report, t.commit_weight
+        self.defer_commit = t.commit_update == "next_epoch"  # the commit joins the next epoch's update
         # K-means pool: fixed window if residual_window_epochs > 1, else adaptive (>= 16 residuals,
         # at most 30 epochs; the paper's ~150 per epoch -> current epoch only)
         self.window = det.ResidualWindow(est.residual_window_epochs, t.residual_window_min,
@@ -140,6 +141,7 @@ class GraphEstimator(NodeEstimator):
         self.p_loc, self.P_loc = np.asarray(pos, float), np.diag(np.maximum(pos_sigma, 1e-3) ** 2)
         # _carry (round_warm_start): the last epoch's round solution − the smoother after the commit (ENU m)
         self.p, self._v_pred, self._links_ready, self._carry = self.p_loc.copy(), self.vel.copy(), False, np.zeros(3)
+        self._pending_commit = None  # commit_update = "next_epoch": the last commit's factor graph
         self.relinker.reset()
         if getattr(self, "mem", None) is not None:
             self.mem.reset()
@@ -154,6 +156,9 @@ class GraphEstimator(NodeEstimator):
         self._v_pred = np.asarray(pred.velocity(), float)
         n = self.n + 1
         g, v, ts = self._own_factors(inp, n, pred)
+        if self._pending_commit is not None:  # the last epoch's commit, in this one update
+            g.push_back(self._pending_commit)
+            self._pending_commit = None
         self.smoother.update(g, v, ts)
         self.n, self.t = n, inp.t
         self._read_estimate()
@@ -328,8 +333,11 @@ class GraphEstimator(NodeEstimator):
         Lr = 0.5 * (Lr + Lr.T)
         g = gtsam.NonlinearFactorGraph()
         g.add(gtsam.GPSFactor(X(self.n), z, gtsam.noiseModel.Gaussian.Information(Lr)))
-        self.smoother.update(g, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
-        self._read_estimate()
+        if self.defer_commit:
+            self._pending_commit = g  # begin_epoch adds it with the next epoch's own factors
+        else:
+            self.smoother.update(g, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
+            self._read_estimate()
         if self.tuning.round_warm_start:
             self._carry = self.p - self.pose.translation()
         if self.report == "round":

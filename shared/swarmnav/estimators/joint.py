@@ -28,26 +28,28 @@ from . import _kernels  # C: built by `make setup` (setup.py)
 from . import detection as det
 
 
-def azel_observations(nodes: list[int], states: dict, own_uav: int, own_bearings: dict
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Every az/el observation between two nodes of ``nodes`` that round 0 carries: (observer index,
-    target index, z (M, 2) rad, σ² (M,) rad²). ``states``: the peers' round-0 states; the node's own
-    observations are ``own_bearings`` (target -> (az, el, σ))."""
-    idx = {u: i for i, u in enumerate(nodes)}
-    obs: list[int] = []
-    tgt: list[int] = []
-    vals: list[float] = []  # az, el, σ per observation
-    for u in nodes:
-        b = own_bearings if u == own_uav else getattr(states.get(u), "bearings", None) or {}
-        i = idx[u]
-        for t in sorted(b):
-            j = idx.get(t)
-            if j is not None and t != u:
-                obs.append(i)
-                tgt.append(j)
-                vals += b[t]
-    v = np.array(vals, float).reshape(-1, 3)
-    return np.array(obs, int), np.array(tgt, int), v[:, :2].copy(), v[:, 2] * v[:, 2]
+def azel_observations(nodes: list[int], states: dict, own_state) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every az/el observation between two nodes of ``nodes`` (sorted ids) that round 0 carries:
+    (observer index, target index, z (M, 2) rad, σ² (M,) rad²), by observer in ``nodes`` order,
+    then by target. ``states``: the peers' round-0 states; ``own_state``: the node's own round-0
+    state (its own observations)."""
+    ids = np.asarray(nodes, np.int64)
+    own = own_state.uav
+    obs_parts, tgt_parts, val_parts = [], [], []
+    for i, u in enumerate(nodes):
+        s = own_state if u == own else states.get(u)
+        if s is None or not s.bearings:
+            continue
+        targets, vals = s.bearing_rows
+        j = np.minimum(np.searchsorted(ids, targets), len(ids) - 1)
+        keep = (ids[j] == targets) & (targets != u)  # a target in the neighbourhood, not itself
+        obs_parts.append(np.full(int(keep.sum()), i))
+        tgt_parts.append(j[keep])
+        val_parts.append(vals[keep])
+    if not obs_parts:
+        return np.zeros(0, int), np.zeros(0, int), np.zeros((0, 2)), np.zeros(0)
+    v = np.concatenate(val_parts)
+    return np.concatenate(obs_parts), np.concatenate(tgt_parts), v[:, :2].copy(), v[:, 2] * v[:, 2]
 
 
 def solve(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np.ndarray, d: np.ndarray,
@@ -131,7 +133,7 @@ def neighbourhood_snapshot(node: Any, c, peers: dict) -> np.ndarray:
     mean[own] = node.p_loc
     info = np.linalg.inv(node.C_round + np.eye(3)[None] * 1e-12)
     info[own] = node._info
-    azel = azel_observations(c.nodes, peers, node.uav, node._last_state.bearings)  # round 1: ours of round 0
+    azel = azel_observations(c.nodes, peers, node._last_state)  # round 1: our state is round 0's
     pairs = c.pairs
 
     def weigh(x: np.ndarray) -> np.ndarray:

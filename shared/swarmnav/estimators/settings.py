@@ -52,6 +52,7 @@ class EstimatorTuning(BaseModel):
     round_warm_start: bool = Field(False, description="start an epoch's rounds (and its round-0 broadcast) at the prior plus the last epoch's cooperative correction (round solution − smoother after the commit, m), near their fixed point; the solve's prior is unchanged")
     range_memory_epochs: int = Field(0, ge=0, description="range memory: the clean (H2) ranges of this many past epochs, moved to the epoch by the two UAVs' velocity-integrated displacements (transport variance estimated online from the node's own ranges), as extra range rows (weight 1 − commit_weight) of the reported solve; rounds, broadcasts and commit unchanged (0: off; range_memory.py)")
     commit_weight: float = Field(0.3, ge=0, le=1, description="weight of the cooperative information committed to the smoother")
+    commit_update: Literal["epoch_end", "next_epoch"] = Field("epoch_end", description="when the commit's factor enters the smoother: its own ISAM2 update at the epoch's end, or the next epoch's update with that epoch's own factors (one update per epoch instead of two; the velocity and attitude reported for an epoch are then the smoother's before its commit)")
     report: Literal["round", "belief", "smoother"] = Field("round", description="the estimate reported: the last round's solution (with its sandwich covariance), the belief, or the smoother's")
     # -- smoother -------------------------------------------------------------------------------
     relinearize_threshold: float = Field(0.05, gt=0, description="ISAM2 relinearisation threshold (rad, m, m/s, bias units)")
@@ -113,6 +114,10 @@ class EstimatorTuning(BaseModel):
         # warm start shifts by the last correction
         if self.round_solver == "joint" and self.round_warm_start:
             raise ValueError("round_solver = \"joint\" solves from the round-0 priors: set round_warm_start = false")
+        if self.commit_update == "next_epoch" and self.report == "smoother":
+            raise ValueError("report = \"smoother\" reports the smoother after the commit: set commit_update = \"epoch_end\"")
+        if self.commit_update == "next_epoch" and self.round_warm_start:
+            raise ValueError("round_warm_start carries the correction past the committed smoother: set commit_update = \"epoch_end\"")
         return self
 
 
