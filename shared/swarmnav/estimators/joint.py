@@ -35,21 +35,17 @@ def azel_observations(nodes: list[int], states: dict, own_state) -> tuple[np.nda
     state (its own observations)."""
     ids = np.asarray(nodes, np.int64)
     own = own_state.uav
-    obs_parts, tgt_parts, val_parts = [], [], []
-    for i, u in enumerate(nodes):
-        s = own_state if u == own else states.get(u)
-        if s is None or not s.bearings:
-            continue
-        targets, vals = s.bearing_rows
-        j = np.minimum(np.searchsorted(ids, targets), len(ids) - 1)
-        keep = (ids[j] == targets) & (targets != u)  # a target in the neighbourhood, not itself
-        obs_parts.append(np.full(int(keep.sum()), i))
-        tgt_parts.append(j[keep])
-        val_parts.append(vals[keep])
-    if not obs_parts:
+    present = [(i, (own_state if u == own else states.get(u))) for i, u in enumerate(nodes)]
+    rows = [(i, s.bearing_rows) for i, s in present if s is not None and s.bearings]
+    if not rows:
         return np.zeros(0, int), np.zeros(0, int), np.zeros((0, 2)), np.zeros(0)
-    v = np.concatenate(val_parts)
-    return np.concatenate(obs_parts), np.concatenate(tgt_parts), v[:, :2].copy(), v[:, 2] * v[:, 2]
+    targets = np.concatenate([r[1][0] for r in rows])
+    vals = np.concatenate([r[1][1] for r in rows])
+    obs = np.repeat(np.array([r[0] for r in rows], np.int64), [len(r[1][0]) for r in rows])
+    j = np.minimum(np.searchsorted(ids, targets), len(ids) - 1)
+    keep = (ids[j] == targets) & (targets != ids[obs])  # a target in the neighbourhood, not itself
+    v = vals[keep]
+    return obs[keep], j[keep], v[:, :2].copy(), v[:, 2] * v[:, 2]
 
 
 def solve(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np.ndarray, d: np.ndarray,
