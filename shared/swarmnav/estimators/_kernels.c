@@ -53,20 +53,39 @@ static int get_buf(PyObject *o, buf_t *bt, const char *fmt, int writable, const 
     return 0;
 }
 
+/* Acquire the n buffers of a call's positional arguments (fmts[i]: 'd' float64, 'q' int64; the
+   arguments from first_writable on are outputs). On failure the exception is set, every buffer
+   acquired so far is released and -1 returned. */
+static int get_bufs(PyObject *args, buf_t *b, int n, const char *fmts, const char **names, int first_writable,
+                    const char *fn) {
+    int i;
+    for (i = 0; i < n; i++) b[i].held = 0;
+    if (!PyTuple_Check(args) || PyTuple_GET_SIZE(args) != n) {
+        PyErr_Format(PyExc_TypeError, "%s takes %d arrays", fn, n);
+        return -1;
+    }
+    for (i = 0; i < n; i++) {
+        const char f[2] = {fmts[i], 0};
+        if (get_buf(PyTuple_GET_ITEM(args, i), &b[i], f, i >= first_writable, names[i]) < 0) {
+            for (int j = 0; j <= i; j++)
+                if (b[j].held) PyBuffer_Release(&b[j].b);
+            return -1;
+        }
+    }
+    return 0;
+}
+
+static void release_bufs(buf_t *b, int n) {
+    for (int i = 0; i < n; i++)
+        if (b[i].held) PyBuffer_Release(&b[i].b);
+}
+
 static PyObject *joint_system(PyObject *self, PyObject *args) {
-    PyObject *o[13];
     static const char *names[13] = {"x", "prior_mean", "prior_info", "ia", "ib", "d", "a", "obs", "tgt",
                                     "z", "c", "H", "g"};
-    static const char *fmts[13] = {"d", "d", "d", "q", "q", "d", "d", "q", "q", "d", "d", "d", "d"};
-    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7],
-                          &o[8], &o[9], &o[10], &o[11], &o[12]))
-        return NULL;
     buf_t b[13];
-    int i;
     PyObject *ret = NULL;
-    for (i = 0; i < 13; i++) b[i].held = 0;
-    for (i = 0; i < 13; i++)
-        if (get_buf(o[i], &b[i], fmts[i], i >= 11, names[i]) < 0) goto done;
+    if (get_bufs(args, b, 13, "dddqqddqqdddd", names, 11, "joint_system") < 0) return NULL;
     Py_ssize_t n = b[0].b.len / (3 * 8), m = b[3].b.len / 8, M = b[7].b.len / 8, N = 3 * n;
     if (b[0].b.len != n * 24 || b[1].b.len != n * 24 || b[2].b.len != n * 72 || b[4].b.len != m * 8 ||
         b[5].b.len != m * 8 || b[6].b.len != m * 8 || b[8].b.len != M * 8 || b[9].b.len != M * 16 ||
@@ -143,8 +162,7 @@ static PyObject *joint_system(PyObject *self, PyObject *args) {
     ret = Py_None;
     Py_INCREF(ret);
 done:
-    for (i = 0; i < 13; i++)
-        if (b[i].held) PyBuffer_Release(&b[i].b);
+    release_bufs(b, 13);
     return ret;
 }
 
@@ -158,18 +176,11 @@ done:
                Ci = w_k C⁻¹, res = (wrap(z_az - az), z_el - el): H += Jᵀ Ci J, g -= Jᵀ Ci res
    The caller initialises H and g (the prior's Λ and Λ(p_loc - p), or zeros). */
 static PyObject *own_system(PyObject *self, PyObject *args) {
-    PyObject *o[14];
     static const char *names[14] = {"p", "pj", "Pj", "w", "lev", "sig2", "z", "pt", "Pt", "wt", "st2", "zt",
                                     "H", "g"};
-    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7],
-                          &o[8], &o[9], &o[10], &o[11], &o[12], &o[13]))
-        return NULL;
     buf_t b[14];
-    int i;
     PyObject *ret = NULL;
-    for (i = 0; i < 14; i++) b[i].held = 0;
-    for (i = 0; i < 14; i++)
-        if (get_buf(o[i], &b[i], "d", i >= 12, names[i]) < 0) goto done;
+    if (get_bufs(args, b, 14, "dddddddddddddd", names, 12, "own_system") < 0) return NULL;
     Py_ssize_t R = b[3].b.len / 8, A = b[9].b.len / 8;
     if (b[0].b.len != 24 || b[1].b.len != R * 24 || b[2].b.len != R * 72 || b[4].b.len != R * 24 ||
         b[5].b.len != R * 8 || b[6].b.len != R * 8 || b[7].b.len != A * 24 || b[8].b.len != A * 72 ||
@@ -230,8 +241,7 @@ static PyObject *own_system(PyObject *self, PyObject *args) {
     ret = Py_None;
     Py_INCREF(ret);
 done:
-    for (i = 0; i < 14; i++)
-        if (b[i].held) PyBuffer_Release(&b[i].b);
+    release_bufs(b, 14);
     return ret;
 }
 
