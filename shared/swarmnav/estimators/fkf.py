@@ -362,16 +362,22 @@ class FkfEstimator(NodeEstimator):
         """
         Ppp = Pa[POS, POS]
         Ypp = np.linalg.inv(Ppp)
-        best = None
-        for w in self._omegas:
-            try:
-                Pc = np.linalg.inv(w * Ypp + (1.0 - w) * Yu)
-            except np.linalg.LinAlgError:
-                continue
-            tr = float(np.trace(Pc))
-            if best is None or tr < best[0]:
-                best = (tr, w, Pc)
-        _, w, Pc = best
+        w_all = self._omegas
+        try:  # every ω of the grid at once: the same inverses and traces as one by one
+            P_all = np.linalg.inv(w_all[:, None, None] * Ypp + (1.0 - w_all)[:, None, None] * Yu)
+            i = int(np.argmin(np.trace(P_all, axis1=1, axis2=2)))  # the first of equal minima
+            w, Pc = float(w_all[i]), P_all[i]
+        except np.linalg.LinAlgError:  # a singular mix: skip it, as the grid search one by one
+            best = None
+            for w in w_all:
+                try:
+                    Pc = np.linalg.inv(w * Ypp + (1.0 - w) * Yu)
+                except np.linalg.LinAlgError:
+                    continue
+                tr = float(np.trace(Pc))
+                if best is None or tr < best[0]:
+                    best = (tr, w, Pc)
+            _, w, Pc = best
         self.omega = float(w)
         xc = Pc @ (w * Ypp @ xa[POS] + (1.0 - w) * yu)
         G = Pa[:, POS] @ Ypp  # (15,3), G[POS] = I
