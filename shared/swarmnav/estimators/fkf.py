@@ -236,47 +236,51 @@ class FkfEstimator(NodeEstimator):
         p = self.nav.position() + x_lin[POS]
         v = self.nav.velocity() + x_lin[VEL]
         Pu = self.P / self.beta_u
-        rows, res, var, links, wrows = [], [], [], [], []
         scale = self.nb_cov_scale
+        # the far ends, read row by row (dicts); the measurement model below, for every row at once
+        use, pb, Pb, lever, other_ids = [], [], [], [], []
+        zero3, zero33 = np.zeros(3), np.zeros((3, 3))
         for j in range(len(inp.range_m)):
             other = int(inp.range_other[j])
-            z = float(inp.range_m[j])
-            if not np.isfinite(z):
+            if not np.isfinite(inp.range_m[j]):
                 continue
             dt = inp.t - float(inp.range_t[j])
             if other in self.anchors:
-                pb = self.anchors[other] + self.tags_all.get(other, {}).get(int(inp.range_tag_other[j]), np.zeros(3))
-                Pb = np.zeros((3, 3))
+                pb.append(self.anchors[other] + self.tags_all.get(other, {}).get(int(inp.range_tag_other[j]), zero3))
+                Pb.append(zero33)
             else:
                 st = self._nb.get(other)
                 if st is None:
                     continue  # neighbour not live: no position to range to
-                pb = np.asarray(st.pos, float) - np.asarray(st.vel, float) * dt
-                Pb = np.asarray(st.pos_cov, float) * scale
-            lever = self.tags_self.get(int(inp.range_tag_self[j]), np.zeros(3))
-            pa = p - v * dt + R @ lever
-            d = pa - pb
-            rng = float(np.linalg.norm(d))
-            if rng < 1e-3:
-                continue
-            u = d / rng
-            h = np.zeros(15)
-            h[POS] = u
-            h[ATT] = -u @ R @ skew(lever)
-            sig = float(inp.range_sigma[j]) if np.isfinite(inp.range_sigma[j]) and inp.range_sigma[j] > 0 else self.meta.uwb_sigma_m
-            rv = sig**2 + float(u @ Pb @ u)
-            wrows.append(float(u @ Pb @ u))
-            # innovation of the (iterated) linearisation: z - h(x_lin) + H x_lin, prior mean 0
-            innov = z - rng
-            rr = innov + float(h @ x_lin)
-            rows.append(h)
-            res.append(rr)
-            var.append(rv)
-            links.append([other, innov, float(h @ Pu @ h) + rv])
-        if not rows:
+                pb.append(np.asarray(st.pos, float) - np.asarray(st.vel, float) * dt)
+                Pb.append(np.asarray(st.pos_cov, float) * scale)
+            use.append(j)
+            other_ids.append(other)
+            lever.append(self.tags_self.get(int(inp.range_tag_self[j]), zero3))
+        if not use:
             return None, []
-        H, r, Rv = np.array(rows), np.array(res), np.array(var)
-        q = np.array(wrows)  # neighbour position variance along each line of sight (0 for anchors)
+        use = np.array(use)
+        dt = inp.t - np.asarray(inp.range_t, float)[use]
+        lever, Pb = np.array(lever, float), np.array(Pb)
+        d = (p - v * dt[:, None] + lever @ R.T) - np.array(pb)  # own tag − far end (ENU m)
+        rng = np.sqrt(np.einsum("ij,ij->i", d, d))
+        ok = rng >= 1e-3
+        use, d, rng, lever, Pb, dt = use[ok], d[ok], rng[ok], lever[ok], Pb[ok], dt[ok]
+        other_ids = [o for o, k in zip(other_ids, ok.tolist()) if k]
+        if not len(use):
+            return None, []
+        u = d / rng[:, None]
+        H = np.zeros((len(use), 15))
+        H[:, POS] = u
+        H[:, ATT] = -np.cross(u @ R, lever)  # −uᵀ R [lever]× = −(Rᵀu) × lever
+        sig = np.asarray(inp.range_sigma, float)[use]
+        sig = np.where(np.isfinite(sig) & (sig > 0), sig, self.meta.uwb_sigma_m)
+        q = np.einsum("ni,nij,nj->n", u, Pb, u)  # neighbour position variance along each line of sight
+        Rv = sig ** 2 + q
+        innov = np.asarray(inp.range_m, float)[use] - rng
+        r = innov + H @ x_lin  # innovation of the (iterated) linearisation: z − h(x_lin) + H x_lin, prior mean 0
+        s_pred = np.einsum("ni,ij,nj->n", H, Pu, H) + Rv
+        links = [[o, i, sp] for o, i, sp in zip(other_ids, innov.tolist(), s_pred.tolist())]
         n_nb = int(np.count_nonzero(q))
         if self.nb_corr == "split" and n_nb > 1:
             # neighbours' errors are mutually correlated by an unknown amount: split-CI bound
