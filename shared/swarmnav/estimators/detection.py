@@ -65,13 +65,14 @@ class RangePairs:
     order on every node), built once so the residuals can be evaluated on each round's positions."""
 
     def __init__(self, nodes: Sequence[int], ranges: Mapping[tuple[int, int], float]):
-        idx = {u: i for i, u in enumerate(nodes)}
-        keys = sorted(k for k in ranges if k[0] in idx and k[1] in idx)
-        self.d = np.array([ranges[k] for k in keys], float)
-        self.ia = np.array([idx[a] for a, _ in keys], int)
-        self.ib = np.array([idx[b] for _, b in keys], int)
         ids = np.array(nodes, np.int64)
-        self.pairs = np.stack([ids[self.ia], ids[self.ib]], axis=1) if keys else np.zeros((0, 2), np.int64)
+        members = set(nodes)
+        keys = sorted(k for k in ranges if k[0] in members and k[1] in members)
+        self.d = np.array([ranges[k] for k in keys], float)
+        self.pairs = np.array(keys, np.int64).reshape(-1, 2)
+        order = np.argsort(ids, kind="stable")  # nodes need not be sorted: index by lookup
+        self.ia = order[np.searchsorted(ids, self.pairs[:, 0], sorter=order)]
+        self.ib = order[np.searchsorted(ids, self.pairs[:, 1], sorter=order)]
 
     def residuals(self, positions: np.ndarray) -> np.ndarray:
         """|d_ij − ‖p_i − p_j‖| with ``positions`` (len(nodes), 3) in the order of ``nodes``."""

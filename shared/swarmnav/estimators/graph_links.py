@@ -221,11 +221,13 @@ def _azel_rows(node: GraphEstimator, peers, c: RoundCache):
     z = [(az[i], el[i]) for i in ai]
     c.n_own_azel = len(tg)
     if node.reverse_azel != "off":
-        for j, (az, el, sj) in sorted(node.peer_bearings.items()):
-            if j in peers:
-                tg.append(j)
-                sg.append(sj)
-                z.append((wrap_angle(az + np.pi), -el))
+        rev = [(j, b) for j, b in sorted(node.peer_bearings.items()) if j in peers]
+        if rev:
+            tg += [j for j, _ in rev]
+            sg += [b[2] for _, b in rev]
+            back = np.array([b[:2] for _, b in rev], float)
+            az_back = wrap_angle(back[:, 0] + np.pi)  # the bearing turned around: az + π, −el
+            z += list(zip(az_back.tolist(), (-back[:, 1]).tolist()))
     if tg:
         c.azel_target = np.array(tg, int)
         c.azel_node = np.array([c.idx[o] for o in tg], int)
