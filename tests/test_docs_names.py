@@ -149,7 +149,8 @@ def _basenames() -> dict[str, list[str]]:
 
 @cache
 def _files() -> set[str]:
-    return {p.name for d in ("shared", "services", "deploy", "tests", "bench") for p in (REPO / d).rglob("*.py")}
+    return ({p.name for d in ("shared", "services", "deploy", "tests", "bench") for p in (REPO / d).rglob("*.py")}
+            | {p.name for p in REPO.glob("*.py")})  # setup.py
 
 
 def check(span: str) -> str | None:

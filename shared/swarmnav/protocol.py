@@ -16,7 +16,10 @@ Pure: the core reads no clock. A caller that wants the estimator's time per epoc
 
 from __future__ import annotations
 
-from collections.abc import Callable, Generator
+import math
+from collections.abc import Callable, Generator, Iterator, Mapping
+
+import numpy as np
 
 from .dataset import EpochInput
 from .estimators.base import NodeEstimate, NodeEstimator, NodeState
@@ -68,6 +71,73 @@ def node_epoch(est: NodeEstimator, inp: EpochInput, rounds: int, tol_m: float,
     return out
 
 
+class RoundIndex:
+    """What every node of an in-process round looks up in that round's states, built once for the
+    round (lazily) instead of once per node: who reports a range to or a bearing of a node, and
+    whose round-0 position lies near a point. With it a node's reading of the swarm
+    (graph_links.take_round0) costs O(its neighbourhood), not O(N) — the broadcast bus knows every
+    state anyway; a node of the Zenoh transport, which receives them one by one, scans them."""
+
+    def __init__(self, states: dict[int, NodeState]):
+        self.states = states
+        self._mentions: dict[int, tuple[list, list]] | None = None
+        self._grids: dict[float, tuple[dict, np.ndarray, np.ndarray]] = {}
+
+    def mentions(self, uav: int) -> tuple[list[tuple[int, tuple]], list[int]]:
+        """([(j, j's bearing of ``uav``)], [j that reports a range to ``uav``]), j in id order."""
+        if self._mentions is None:
+            self._mentions = {}
+            for j, s in self.states.items():  # in id order
+                for t, b in (s.bearings or {}).items():
+                    self._mentions.setdefault(t, ([], []))[0].append((j, b))
+                for t in (s.ranges or {}):
+                    self._mentions.setdefault(t, ([], []))[1].append(j)
+        return self._mentions.get(uav, ([], []))
+
+    def round0_near(self, p: np.ndarray, radius: float) -> list[int]:
+        """The nodes with a round-0 state whose position may lie within ``radius`` of p (ENU m): every
+        one that does, and some that do not (the caller tests the distance)."""
+        if radius not in self._grids:
+            ids = [j for j, s in self.states.items() if s.r == 0]
+            pos = np.array([self.states[j].pos for j in ids], float).reshape(-1, 3)
+            cells: dict[tuple, list[int]] = {}
+            for n, c in enumerate(map(tuple, np.floor(pos / radius).astype(np.int64).tolist())):
+                cells.setdefault(c, []).append(n)
+            self._grids[radius] = (cells, np.array(ids, np.int64), pos)
+        cells, ids, _ = self._grids[radius]
+        cx, cy, cz = (math.floor(float(v) / radius) for v in p)
+        rows = [n for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)
+                for n in cells.get((cx + dx, cy + dy, cz + dz), ())]
+        return ids[sorted(rows)].tolist()
+
+    def round0_ids(self) -> list[int]:
+        return [j for j, s in self.states.items() if s.r == 0]
+
+
+class PeerView(Mapping):
+    """The round's states of every live node but ``own`` (a read-only dict view, in id order: no
+    copy per node) and the round's :class:`RoundIndex` as ``index``."""
+
+    __slots__ = ("_states", "_own", "index")
+
+    def __init__(self, states: dict[int, NodeState], own: int, index: RoundIndex | None = None):
+        self._states, self._own, self.index = states, own, index
+
+    def __getitem__(self, j: int) -> NodeState:
+        if j == self._own:
+            raise KeyError(j)
+        return self._states[j]
+
+    def __iter__(self) -> Iterator[int]:
+        return (j for j in self._states if j != self._own)
+
+    def __len__(self) -> int:
+        return len(self._states) - (self._own in self._states)
+
+    def __contains__(self, j: object) -> bool:
+        return j != self._own and j in self._states
+
+
 def run_epoch_in_process(epochs: dict[int, NodeEpoch],
                          last_states: dict[int, NodeState] | None = None) -> dict[int, NodeEstimate]:
     """In-memory transport: drive every live node's epoch generator in lock-step rounds.
@@ -81,9 +151,10 @@ def run_epoch_in_process(epochs: dict[int, NodeEpoch],
     results: dict[int, NodeEstimate] = {}
     while active:
         snapshot = dict(states)
+        index = RoundIndex(snapshot)  # shared by every node's view of this round
         for u, g in list(active.items()):
             try:
-                states[u] = g.send({j: s for j, s in snapshot.items() if j != u})
+                states[u] = g.send(PeerView(snapshot, u, index))
             except StopIteration as stop:
                 results[u] = stop.value
                 if last_states is not None:

@@ -121,9 +121,19 @@ def take_round0(node: GraphEstimator, peers: dict[int, NodeState]) -> tuple[int,
     me = node.uav
     radius2 = None if node.hood_radius is None else node.hood_radius ** 2
     near = []
+    index = getattr(peers, "index", None)  # the in-process bus's RoundIndex (protocol.py), if any
     # only round-0 states carry ranges, bearings and trajectories, and they are the first round's
     # peers: later rounds do not scan the swarm
-    for j, s in (peers.items() if node.round0_pending else ()):  # O(live peers), a membership test each
+    if node.round0_pending and index is not None:  # looked up: O(neighbourhood)
+        bearings_of_me, ranged_me = index.mentions(me)
+        for j, b in bearings_of_me:
+            if j in peers:
+                node.peer_bearings[j] = b
+                node.hood1.add(j)
+        node.hood1.update(j for j in ranged_me if j in peers)
+        cand = index.round0_ids() if radius2 is None else index.round0_near(node.p_loc, node.hood_radius)
+        near = [j for j in cand if j != me and j not in node.hood1 and j in peers]
+    for j, s in (peers.items() if node.round0_pending and index is None else ()):  # O(live peers)
         if s.bearings and me in s.bearings:
             node.peer_bearings[j] = s.bearings[me]
             node.hood1.add(j)
@@ -140,8 +150,9 @@ def take_round0(node: GraphEstimator, peers: dict[int, NodeState]) -> tuple[int,
         return tuple(sorted(u for u in node.hood if u in peers))
     node.round0_pending = False
     known = node.peer_ranges  # (a, b), a ≤ b -> m
-    for j, s in peers.items():  # in the peers' order: the first report of a pair's range is kept
-        if j in node.hood1 and (s.ranges or s.n_links):  # round-0 states carry ranges and link count
+    for j in sorted(node.hood1):  # in id order (the peers' order): the first report of a pair's range is kept
+        s = peers.get(j)
+        if s is not None and (s.ranges or s.n_links):  # round-0 states carry ranges and link count
             node.peer_links[j] = max(len(s.ranges), int(s.n_links))
             for o, d in s.ranges.items():
                 pair = (j, o) if j < o else (o, j)
