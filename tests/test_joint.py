@@ -162,3 +162,20 @@ def test_azel_observations_takes_every_bearing_inside_the_neighbourhood_in_order
     for (u, t), zz, ss in zip(expect, z, s2):
         az, el, sig = (own if u == 2 else states[u]).bearings[t]
         assert tuple(zz) == (az, el) and ss == sig * sig
+
+
+@pytest.mark.parametrize("n", [1, 6, 54, 61, 150])
+def test_spd_solve_on_both_sides_of_the_small_system_threshold(n):
+    """joint._spd_solve (C Cholesky up to _SMALL_SYSTEM unknowns, numpy's Cholesky + C triangular
+    solves above) against LU; an indefinite H falls back to LU, a singular one gives NaNs."""
+    from swarmnav.estimators import _kernels
+
+    rng = np.random.default_rng(n)
+    A = rng.normal(size=(n, n))
+    H, g = A @ A.T + n * np.eye(n), rng.normal(size=n)
+    np.testing.assert_allclose(joint._spd_solve(H, g), np.linalg.solve(H, g), rtol=1e-10, atol=1e-12)
+    x = np.zeros(n)
+    assert _kernels.spd_solve(-H, g, x) is False and not x.any()  # indefinite: refused, x untouched
+    np.testing.assert_allclose(joint._spd_solve(-H, g), np.linalg.solve(-H, g), rtol=1e-10, atol=1e-12)
+    if n > 1:
+        assert np.isnan(joint._spd_solve(np.zeros((n, n)), g)).all()

@@ -2,7 +2,8 @@
 
    joint_system  the joint snapshot's (joint.py :func:`solve`), every position of a neighbourhood;
    own_system    one node's own position against its neighbours' broadcasts (rounds.py
-                 :func:`normal_equations`: the round solves, the commit, the reported solve).
+                 :func:`normal_equations`: the round solves, the commit, the reported solve);
+   cho_solve     the two triangular solves after numpy's Cholesky factorisation (joint.py).
 
    joint_system:
 
@@ -245,11 +246,104 @@ done:
     return ret;
 }
 
+/* cho_solve(L, b, x): x = (L Lᵀ)⁻¹ b for a lower-triangular Cholesky factor L (n x n, as
+   numpy.linalg.cholesky returns it): forward, then back substitution (O(n²); the factorisation,
+   O(n³), stays in LAPACK through numpy). */
+static PyObject *cho_solve(PyObject *self, PyObject *args) {
+    static const char *names[3] = {"L", "b", "x"};
+    buf_t b[3];
+    PyObject *ret = NULL;
+    if (get_bufs(args, b, 3, "ddd", names, 2, "cho_solve") < 0) return NULL;
+    Py_ssize_t n = b[1].b.len / 8;
+    if (b[0].b.len != n * n * 8 || b[2].b.len != n * 8) {
+        PyErr_SetString(PyExc_ValueError, "cho_solve: inconsistent array sizes");
+        goto done;
+    }
+    const double *L = b[0].b.buf, *rhs = b[1].b.buf;
+    double *x = b[2].b.buf;
+    for (Py_ssize_t i = 0; i < n; i++) {  /* L y = b */
+        double s = rhs[i];
+        for (Py_ssize_t k = 0; k < i; k++) s -= L[i * n + k] * x[k];
+        x[i] = s / L[i * n + i];
+    }
+    for (Py_ssize_t i = n - 1; i >= 0; i--) {  /* Lᵀ x = y */
+        double s = x[i];
+        for (Py_ssize_t k = i + 1; k < n; k++) s -= L[k * n + i] * x[k];
+        x[i] = s / L[i * n + i];
+    }
+    ret = Py_None;
+    Py_INCREF(ret);
+done:
+    release_bufs(b, 3);
+    return ret;
+}
+
+/* spd_solve(H, b, x) -> bool: x = H⁻¹ b by an unblocked Cholesky factorisation of the symmetric
+   positive definite H (n x n; its lower triangle is read) and two triangular solves, for the
+   small systems of the joint snapshot (below ~50 nodes it beats LAPACK through numpy, whose call
+   overhead dominates there). False (x untouched) if H is not numerically positive definite. */
+static PyObject *spd_solve(PyObject *self, PyObject *args) {
+    static const char *names[3] = {"H", "b", "x"};
+    buf_t b[3];
+    PyObject *ret = NULL;
+    if (get_bufs(args, b, 3, "ddd", names, 2, "spd_solve") < 0) return NULL;
+    Py_ssize_t n = b[1].b.len / 8;
+    if (b[0].b.len != n * n * 8 || b[2].b.len != n * 8) {
+        PyErr_SetString(PyExc_ValueError, "spd_solve: inconsistent array sizes");
+        goto done;
+    }
+    const double *H = b[0].b.buf, *rhs = b[1].b.buf;
+    double *x = b[2].b.buf;
+    double *L = PyMem_Malloc((size_t)(n * n + n) * sizeof(double));
+    if (L == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    double *y = L + n * n;
+    int ok = 1;
+    for (Py_ssize_t j = 0; j < n && ok; j++) {  /* L Lᵀ = H, row-oriented (Cholesky–Banachiewicz) */
+        for (Py_ssize_t i = j; i < n; i++) {
+            double s = H[i * n + j];
+            const double *Li = L + i * n, *Lj = L + j * n;
+            for (Py_ssize_t k = 0; k < j; k++) s -= Li[k] * Lj[k];
+            if (i == j) {
+                if (!(s > 0.0) || !isfinite(s)) { ok = 0; break; }
+                L[j * n + j] = sqrt(s);
+            } else {
+                L[i * n + j] = s / L[j * n + j];
+            }
+        }
+    }
+    if (ok) {
+        for (Py_ssize_t i = 0; i < n; i++) {
+            double s = rhs[i];
+            for (Py_ssize_t k = 0; k < i; k++) s -= L[i * n + k] * y[k];
+            y[i] = s / L[i * n + i];
+        }
+        for (Py_ssize_t i = n - 1; i >= 0; i--) {
+            double s = y[i];
+            for (Py_ssize_t k = i + 1; k < n; k++) s -= L[k * n + i] * y[k];
+            y[i] = s / L[i * n + i];
+        }
+        memcpy(x, y, (size_t)n * sizeof(double));
+    }
+    PyMem_Free(L);
+    ret = PyBool_FromLong(ok);
+done:
+    release_bufs(b, 3);
+    return ret;
+}
+
 static PyMethodDef methods[] = {
     {"joint_system", joint_system, METH_VARARGS,
      "joint_system(x, prior_mean, prior_info, ia, ib, d, a, obs, tgt, z, c, H, g): fill H (3n, 3n) and g (3n,) "
      "of the joint snapshot's Gauss-Newton step at x (n, 3); a = range weight / sigma^2 (m,), c = az/el "
      "weight / sigma^2 (M,). float64 / int64, C-contiguous."},
+    {"cho_solve", cho_solve, METH_VARARGS,
+     "cho_solve(L, b, x): x = (L L^T)^-1 b, L lower triangular (n, n), b and x (n,). float64, C-contiguous."},
+    {"spd_solve", spd_solve, METH_VARARGS,
+     "spd_solve(H, b, x) -> bool: x = H^-1 b by Cholesky (H symmetric positive definite, lower triangle read); "
+     "False if H is not numerically positive definite. float64, C-contiguous."},
     {"own_system", own_system, METH_VARARGS,
      "own_system(p, pj, Pj, w, lev, sig2, z, pt, Pt, wt, st2, zt, H, g): add the range and az/el factors of "
      "one position p (3,) against its neighbours to H (3, 3) and g (3,). float64, C-contiguous."},

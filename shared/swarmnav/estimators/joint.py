@@ -22,8 +22,6 @@ from typing import Any
 
 import numpy as np
 
-from scipy.linalg.lapack import dposv as _dposv
-
 from . import _kernels  # C: built by `make setup` (setup.py)
 from . import detection as det
 
@@ -58,8 +56,8 @@ def solve(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np
     the solution is within ~10 µm of converged, measured on paper). A non-finite step keeps the last
     finite solution. The normal equations of each step come from the C kernel ``_kernels``
     (the models of uwb_range and bearing, one loop over the factors: ~40 numpy calls less per step);
-    H is symmetric positive definite (every node has a prior), solved by Cholesky (LAPACK dposv),
-    LU where Cholesky fails (a degenerate set)."""
+    H is symmetric positive definite (every node has a prior), solved by Cholesky, LU where
+    Cholesky fails (a degenerate set)."""
     n = len(prior_mean)
     x = np.array(x0, float, order="C")
     obs, tgt, z, s2 = azel
@@ -81,12 +79,25 @@ def solve(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np
     return x
 
 
+_SMALL_SYSTEM = 60  # unknowns up to which the whole Cholesky solve in C beats LAPACK through numpy
+
+
 def _spd_solve(H: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """H⁻¹g for a symmetric positive definite H (Cholesky, LAPACK dposv: ~2× cheaper than LU at
-    every size here); LU if H is not numerically positive definite; NaNs if singular."""
-    _, dx, info = _dposv(H, g, lower=1, overwrite_a=0, overwrite_b=0)
-    if info == 0:
-        return dx
+    """H⁻¹g for a symmetric positive definite H by Cholesky (~2× cheaper than LU here): all in C
+    (``_kernels.spd_solve``) up to ``_SMALL_SYSTEM`` unknowns, where call overhead dominates; above,
+    the factorisation in LAPACK through numpy and the two triangular solves in C (not scipy.linalg:
+    its import costs every UAV process 17 MB of RSS). LU if H is not numerically positive definite;
+    NaNs if singular."""
+    x = np.empty_like(g)
+    if len(g) <= _SMALL_SYSTEM:
+        if _kernels.spd_solve(H, g, x):
+            return x
+    else:
+        try:
+            _kernels.cho_solve(np.linalg.cholesky(H), g, x)
+            return x
+        except np.linalg.LinAlgError:
+            pass
     try:
         return np.linalg.solve(H, g)
     except np.linalg.LinAlgError:
