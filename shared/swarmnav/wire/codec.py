@@ -49,9 +49,9 @@ def check_position_cov(pos, cov, envelope_m: float = ENVELOPE_M) -> None:
     else:
         p = [float(x) for x in np.asarray(pos, np.float64).ravel().tolist()]
         a, b, c, d, e, f, g, h, i = (float(x) for x in np.asarray(cov, np.float64).ravel().tolist())
-    if not all(math.isfinite(x) for x in (*p, a, b, c, d, e, f, g, h, i)):
+    if not all(map(math.isfinite, (*p, a, b, c, d, e, f, g, h, i))):
         raise WireError("invalid", "non-finite position or covariance")
-    if max(abs(x) for x in p) > envelope_m:
+    if max(map(abs, p)) > envelope_m:
         raise WireError("envelope", f"position {max(abs(x) for x in p):.3g} m from the origin, outside the {envelope_m:g} m envelope")
     tol = 1e-9 * max(abs(a), abs(e), abs(i), 1e-300)
     if abs(b - d) > tol or abs(c - g) > tol or abs(f - h) > tol:
