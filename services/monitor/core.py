@@ -354,15 +354,28 @@ class MonitorCore:
     def finish(self, figures: bool = True) -> dict:
         """Write the report first (the essential output: a launcher stopping the run allows only
         seconds), then close every epoch in the recording and close it, then (unless stopping on a
-        signal, when every second counts) the figures. Killed half-way, the journal and the
+        signal, when every second counts) the figures, drawn while ``rerun rrd merge`` joins the
+        recording's segments in its own process (the run ends ~1-2 s sooner). Killed half-way, the journal and the
         recording's segments on disk let ``swarmnav report RUN_DIR`` rebuild what is missing."""
+        merged, ok = None, False
         try:
             rep = self.report()
             self.close_epochs(self.K, force=True)
+            ok = True
         finally:
-            self.sink.close()
-            if self.journal is not None:
-                self.journal.close()
-        if figures:
+            try:
+                if ok and figures and hasattr(self.sink, "close_start"):  # merge (another process) while drawing
+                    merged = self.sink.close_start()
+                else:
+                    self.sink.close()
+            finally:
+                if self.journal is not None:
+                    self.journal.close()
+        if merged is not None:
+            try:
+                self.write_figures()
+            finally:
+                merged()
+        elif figures:
             self.write_figures()
         return rep
