@@ -156,13 +156,20 @@ class SegmentedRecording:
         self.n += 1
 
     def close(self) -> None:
+        self.close_start()()
+
+    def close_start(self):
+        """Commit the last segment and start merging (a ``rerun rrd merge`` process); returns the
+        function that waits for the merge to end (and raises if it failed). The caller may work in
+        the meantime: the monitor draws its figures while the merge runs on the other core."""
         self.commit()
-        merge_segments(self.dir, self.final)
+        return merge_segments(self.dir, self.final, wait=False)
 
 
-def merge_segments(seg_dir, final_path) -> int:
+def merge_segments(seg_dir, final_path, wait: bool = True):
     """``rerun rrd merge`` every ``seg_*.rrd`` of ``seg_dir`` into ``final_path`` (atomically), then
-    remove the segments. Returns the number merged."""
+    remove the segments. Returns the number merged; with ``wait=False`` the merge is started and a
+    function is returned that waits for it, finishes the same way and returns that number."""
     import os
     import shutil
     import subprocess
@@ -170,15 +177,23 @@ def merge_segments(seg_dir, final_path) -> int:
     from pathlib import Path
 
     segs = sorted(Path(seg_dir).glob("seg_*.rrd"))
+    proc = None
+    tmp = str(final_path) + ".tmp"
     if segs:
         cli = Path(sys.executable).with_name("rerun")
-        tmp = str(final_path) + ".tmp"
-        r = subprocess.run([str(cli), "rrd", "merge", *map(str, segs), "-o", tmp], capture_output=True, text=True)
-        if r.returncode != 0:
-            raise RuntimeError(f"rerun rrd merge failed: {r.stderr.strip()[-500:]}")
-        os.replace(tmp, final_path)
-    shutil.rmtree(seg_dir, ignore_errors=True)
-    return len(segs)
+        proc = subprocess.Popen([str(cli), "rrd", "merge", *map(str, segs), "-o", tmp], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+
+    def finish() -> int:
+        if proc is not None:
+            _, err = proc.communicate()
+            if proc.returncode != 0:
+                raise RuntimeError(f"rerun rrd merge failed: {err.strip()[-500:]}")
+            os.replace(tmp, final_path)
+        shutil.rmtree(seg_dir, ignore_errors=True)
+        return len(segs)
+
+    return finish() if wait else finish
 
 
 def close_recording(rec: rr.RecordingStream) -> None:

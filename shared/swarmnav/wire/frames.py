@@ -86,7 +86,8 @@ def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = 
     if max(map(abs, fx[13:16])) > ENVELOPE_M or (w and max(map(abs, fx[o_w:])) > envelope_m):
         raise WireError("envelope", "velocity or window position outside the envelope")
     q = fx[18:22]
-    if any(q) and abs(math.sqrt(sum(x * x for x in q)) - 1.0) > 1e-6:
+    q0, q1, q2, q3 = q
+    if any(q) and abs(math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3) - 1.0) > 1e-6:  # = sqrt(sum(x * x for x in q))
         raise WireError("invalid", "attitude quaternion not of unit norm")
     rng, kids = fx[_STATE_NF:o_b], ids[n + m:]
     if w and (min(kids) < 0 or max(kids) > k or len(set(kids)) != w):

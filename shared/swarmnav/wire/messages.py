@@ -87,11 +87,15 @@ class EstimateMsg(UavMsg):
     @model_validator(mode="after")
     def _plausible(self):
         try:
-            check_position_cov(self.pos, self.pos_cov)
-            check_position_cov(self.vel, np.eye(3))
+            # validated lists of floats: as tuples they take check_position_cov's plain-float path
+            check_position_cov(tuple(self.pos), tuple(self.pos_cov))
+            check_position_cov(tuple(self.vel), _EYE3)
         except WireError as e:
             raise ValueError(str(e)) from None
         return self
+
+
+_EYE3 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)  # row-major identity (a velocity's plausibility check)
 
 
 class LinksMsg(UavMsg):
