@@ -246,6 +246,8 @@ def launch(spec: LaunchSpec) -> LaunchResult:
                 stop_all(procs)
                 if zygote is not None:
                     zygote.close()
+                    if zygote.hung:
+                        print(f"\nswarmnav launch: the UAV zygote {zygote.hung} (see {zygote.log})", file=sys.stderr)
                 try:
                     clock.undeclare()
                 except Exception:  # session already closing

@@ -302,6 +302,7 @@ class Zygote:
         self.sock = ours
         self.exits: dict[int, int] = {}  # pid -> returncode, reported and not yet collected by its ZygoteProc
         self.lost: str | None = None  # why the zygote can no longer be used, e.g. "killed by SIGKILL"
+        self.hung: str | None = None  # set by close() when the zygote had to be killed
         self._reply: tuple[dict, list[int]] | None = None
 
     def _fail(self, why: str) -> None:
@@ -374,6 +375,7 @@ class Zygote:
         try:
             return self.p.wait(timeout=STOP_GRACE_S + 5.0)
         except subprocess.TimeoutExpired:
+            self.hung = f"it did not exit within {STOP_GRACE_S + 5.0:.1f} s of the run's end (stopped or hung): killed"
             self.p.kill()
             return self.p.wait()
 

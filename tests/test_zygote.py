@@ -130,6 +130,15 @@ def test_children_die_with_the_zygote(tmp_path):
     z.close()
 
 
+def test_a_stopped_zygote_is_killed_at_the_end_and_said_so(tmp_path):
+    """A zygote that no longer answers (SIGSTOP) when the run ends is SIGKILLed by close(), which
+    records why (the launcher prints it; its exit -9 makes the launch fail)."""
+    z = _zygote(tmp_path)
+    z.p.send_signal(signal.SIGSTOP)
+    assert z.close() == -signal.SIGKILL
+    assert z.hung and "did not exit" in z.hung
+
+
 def test_launch_ends_loudly_when_the_zygote_dies(tmp_path):
     out = tmp_path / "run"
     env = dict(os.environ, PYTHONPATH=f"{REPO}:{REPO / 'shared'}")
