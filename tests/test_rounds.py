@@ -69,3 +69,26 @@ def test_own_system_rejects_inconsistent_arrays():
         _kernels.own_system(p, *bad, H, g)
     with pytest.raises(ValueError):
         _kernels.own_system(p, *args, np.zeros((2, 2)), g)
+
+
+def test_own_system_is_built_from_the_measurement_models():
+    """The C kernel re-states models/uwb_range.py and models/bearing.py: H and g equal what those
+    modules' functions give (ranges, variance_with_peer, azel_jacobians, noise_with_target,
+    azel_residuals), so a change to a model that the kernel does not follow fails here."""
+    from swarmnav.models.bearing import azel_jacobians, azel_residuals, noise_with_target
+    from swarmnav.models.uwb_range import ranges, variance_with_peer
+
+    p, L = _links(4)
+    pj, Pj, w, lev, sig2, z = L.rng
+    pt, Pt, wt, st2, zt = L.azel
+    rr, u = ranges(p + lev - pj)
+    a = w / variance_with_peer(sig2, u, Pj)
+    az, el, J = azel_jacobians(pt - p)
+    Ci = np.linalg.inv(noise_with_target(J, Pt, st2)) * wt[:, None, None]
+    res = azel_residuals(zt, az, el)
+    H_ref = (u * a[:, None]).T @ u + np.einsum("mji,mjk,mkl->il", J, Ci, J)
+    g_ref = u.T @ (a * (z - rr)) - np.einsum("mji,mjk,mk->i", J, Ci, res)
+    H, g = np.zeros((3, 3)), np.zeros(3)
+    _kernels.own_system(p, *[np.asarray(x, float) for x in L.rng + L.azel], H, g)
+    np.testing.assert_allclose(H, H_ref, rtol=1e-12)
+    np.testing.assert_allclose(g, g_ref, rtol=1e-12, atol=1e-12)
