@@ -246,6 +246,20 @@ done:
     return ret;
 }
 
+/* x = (L Lᵀ)⁻¹ rhs for a lower-triangular L (n x n): forward, then back substitution (x may be rhs). */
+static void triangular_solves(const double *L, Py_ssize_t n, const double *rhs, double *x) {
+    for (Py_ssize_t i = 0; i < n; i++) {  /* L y = b */
+        double s = rhs[i];
+        for (Py_ssize_t k = 0; k < i; k++) s -= L[i * n + k] * x[k];
+        x[i] = s / L[i * n + i];
+    }
+    for (Py_ssize_t i = n - 1; i >= 0; i--) {  /* Lᵀ x = y */
+        double s = x[i];
+        for (Py_ssize_t k = i + 1; k < n; k++) s -= L[k * n + i] * x[k];
+        x[i] = s / L[i * n + i];
+    }
+}
+
 /* cho_solve(L, b, x): x = (L Lᵀ)⁻¹ b for a lower-triangular Cholesky factor L (n x n, as
    numpy.linalg.cholesky returns it): forward, then back substitution (O(n²); the factorisation,
    O(n³), stays in LAPACK through numpy). */
@@ -259,18 +273,7 @@ static PyObject *cho_solve(PyObject *self, PyObject *args) {
         PyErr_SetString(PyExc_ValueError, "cho_solve: inconsistent array sizes");
         goto done;
     }
-    const double *L = b[0].b.buf, *rhs = b[1].b.buf;
-    double *x = b[2].b.buf;
-    for (Py_ssize_t i = 0; i < n; i++) {  /* L y = b */
-        double s = rhs[i];
-        for (Py_ssize_t k = 0; k < i; k++) s -= L[i * n + k] * x[k];
-        x[i] = s / L[i * n + i];
-    }
-    for (Py_ssize_t i = n - 1; i >= 0; i--) {  /* Lᵀ x = y */
-        double s = x[i];
-        for (Py_ssize_t k = i + 1; k < n; k++) s -= L[k * n + i] * x[k];
-        x[i] = s / L[i * n + i];
-    }
+    triangular_solves(b[0].b.buf, n, b[1].b.buf, b[2].b.buf);
     ret = Py_None;
     Py_INCREF(ret);
 done:
@@ -280,8 +283,8 @@ done:
 
 /* spd_solve(H, b, x) -> bool: x = H⁻¹ b by an unblocked Cholesky factorisation of the symmetric
    positive definite H (n x n; its lower triangle is read) and two triangular solves, for the
-   small systems of the joint snapshot (below ~50 nodes it beats LAPACK through numpy, whose call
-   overhead dominates there). False (x untouched) if H is not numerically positive definite. */
+   small systems of the joint snapshot (up to ~60 unknowns it beats LAPACK through numpy, whose
+   call overhead dominates there). False (x untouched) if H is not numerically positive definite. */
 static PyObject *spd_solve(PyObject *self, PyObject *args) {
     static const char *names[3] = {"H", "b", "x"};
     buf_t b[3];
@@ -315,16 +318,7 @@ static PyObject *spd_solve(PyObject *self, PyObject *args) {
         }
     }
     if (ok) {
-        for (Py_ssize_t i = 0; i < n; i++) {
-            double s = rhs[i];
-            for (Py_ssize_t k = 0; k < i; k++) s -= L[i * n + k] * y[k];
-            y[i] = s / L[i * n + i];
-        }
-        for (Py_ssize_t i = n - 1; i >= 0; i--) {
-            double s = y[i];
-            for (Py_ssize_t k = i + 1; k < n; k++) s -= L[k * n + i] * y[k];
-            y[i] = s / L[i * n + i];
-        }
+        triangular_solves(L, n, rhs, y);
         memcpy(x, y, (size_t)n * sizeof(double));
     }
     PyMem_Free(L);
