@@ -226,6 +226,37 @@ def test_state_frame_exact():
     assert (s2.uav, s2.k, s2.r, s2.t) == (3, 5, 2, 5.0)
 
 
+def test_state_frame_bearing_rows_are_the_property():
+    """decode_state gives NodeState.bearing_rows straight from the frame when its targets are in the
+    encoder's order; the numbers equal what the cached property builds from ``bearings``, and a
+    frame in another order (hand-made) or in a mutable buffer falls back to the property."""
+    from swarmnav.estimators.base import NodeState
+    from swarmnav.wire import frames
+
+    rng = np.random.default_rng(12)
+    s = _state(rng)
+    s.bearings = {int(t): (float(rng.uniform(-3, 3)), float(rng.uniform(-1.5, 1.5)), 0.01 + float(rng.random()))
+                  for t in rng.choice(np.arange(4, 90), 12, replace=False)}
+    b = M.encode_state(s)
+    fast = M.decode_state(b, uav=3)
+    assert "bearing_rows" in fast.__dict__  # taken from the frame
+    slow = NodeState.bearing_rows.func(fast)  # the property's own computation
+    for x, y in zip(fast.bearing_rows, slow):
+        assert x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y)
+    assert not fast.bearing_rows[1].flags.writeable  # a view of the immutable frame
+    assert "bearing_rows" not in M.decode_state(bytearray(b), uav=3).__dict__
+    # the same frame with the bearing targets in descending order: decoded alike, rows sorted by the property
+    n, m = len(s.ranges), len(s.bearings)
+    hdr, nf = frames._STATE_HDR.size, 22 + n + 3 * m + 3 * len(s.traj)
+    f = np.frombuffer(b, "<f8", nf, hdr).copy()
+    ids = np.frombuffer(b, "<i8", n + m + len(s.traj), hdr + 8 * nf).copy()
+    f[22 + n:22 + n + 3 * m] = f[22 + n:22 + n + 3 * m].reshape(m, 3)[::-1].ravel()
+    ids[n:n + m] = ids[n:n + m][::-1]
+    rev = M.decode_state(b[:hdr] + f.tobytes() + ids.tobytes(), uav=3)
+    assert "bearing_rows" not in rev.__dict__ and rev.bearings == fast.bearings
+    assert all(np.array_equal(x, y) for x, y in zip(rev.bearing_rows, fast.bearing_rows))
+
+
 def test_state_frame_rejects():
     rng = np.random.default_rng(9)
     s = _state(rng)

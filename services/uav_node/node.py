@@ -81,6 +81,7 @@ class Node:
         self.inc = 0  # incarnation: bumped at every (re-)bootstrap, carried in the estimates
         self.need_bootstrap = bool(args.rejoin)  # the next epoch starts from a fresh alignment + peers
         self.peer_newest: dict[int, int] = {}  # peer -> newest epoch seen in its states (the swarm moved on without us?)
+        self.newest_count: dict[int, int] = {}  # epoch -> how many peers' newest it is (newest_peer_k without a scan)
         self.clock_k = 0  # newest epoch the sensor-sim's clock opened (states beyond it cannot be genuine)
         self.sim_alive = False
         self.sim_lost_at: float | None = None  # monotonic time the sensor-sim's token went away
@@ -216,8 +217,14 @@ class Node:
         if m.k > max(self.clock_k, self.k_done) + FUTURE_SLACK:  # far beyond any opened epoch: forged
             self.rejects.add("state", M.WireError("future", f"state of epoch {m.k}, clock at {self.clock_k}"))
             return False
-        if m.k > self.peer_newest.get(m.uav, 0):
+        if m.k > (old := self.peer_newest.get(m.uav, 0)):
             self.peer_newest[m.uav] = m.k
+            cnt = self.newest_count
+            cnt[m.k] = cnt.get(m.k, 0) + 1
+            if old:
+                cnt[old] -= 1
+                if not cnt[old]:
+                    del cnt[old]
         have = self.states.setdefault((m.k, m.r), {})
         have[m.uav] = m
         w = self.waiting
@@ -283,7 +290,7 @@ class Node:
     def newest_peer_k(self) -> int:
         """The newest epoch a peer has reached, counting only epochs the sensor-sim's clock has
         opened (a forged state of a later epoch can never make us drop ours as stale)."""
-        return max((v for v in list(self.peer_newest.values()) if v <= self.clock_k + 1), default=0)
+        return max((v for v, n in list(self.newest_count.items()) if n > 0 and v <= self.clock_k + 1), default=0)
 
     def connected(self) -> bool:
         """This session reaches a router and the sensor-sim is there (a router outage deletes every
@@ -334,22 +341,27 @@ class Node:
         ahead: they completed epoch k+1 without us, so we were frozen or cut off)."""
         t0 = time.monotonic()
         requeried = 0.0
+        expect, dead_seen = None, True
         while True:
             self.inbox.ev.clear()  # before looking: a wake-up from here on is not lost
             if (newest := self.newest_peer_k()) >= k + 2:
                 raise StaleEpoch(f"epoch {k}: peers are already at epoch {newest}")
             have = self.states.get((k, r), {})
             # a participant is waited for until its liveliness token goes away (the sensor-sim saw
-            # it live when it opened the epoch, so a token we have not seen yet is not a death)
-            expect = {u for u in participants if u != self.uav and not (u in self.dead and self.peer_gone(u))
-                      and self.peer_done_k.get(u, 0) < k}
+            # it live when it opened the epoch, so a token we have not seen yet is not a death);
+            # the set is computed again only while a peer is dead (peer_gone changes with time) or
+            # after a re-query (peer_done_k): an O(swarm) scan per wake-up otherwise
+            if expect is None or dead_seen or self.dead:
+                dead_seen = bool(self.dead)
+                expect = {u for u in participants if u != self.uav and not (u in self.dead and self.peer_gone(u))
+                          and self.peer_done_k.get(u, 0) < k}
             if self.republish and self.history:  # our state of this round may have gone into the outage
                 self.republish = False
                 self.publish(self.pub_state, self.history[-1])
             self.waiting = ((k, r), expect)  # the state pump wakes us once all of these are in
-            missing = sorted(expect - set(have))
-            if not missing:
+            if expect <= have.keys():
                 break
+            missing = sorted(expect - have.keys())
             waited = time.monotonic() - t0
             offline = not self.connected()
             if offline and (why := self.abandoned()):
@@ -360,7 +372,7 @@ class Node:
             if waited > self.peer_timeout and waited - requeried > self.peer_timeout and not offline:
                 self.log.warning("epoch %d round %d: re-querying states of %s", k, r, missing)
                 self.requery(k, r, missing)
-                requeried = waited
+                requeried, expect = waited, None  # the replies may say a peer finished epoch k
                 continue
             if not self.pump(0.1 if self.dead else 0.2, clear=False):
                 raise KeyboardInterrupt
@@ -521,6 +533,7 @@ def main(argv=None) -> int:
             log.info("UAV %d exiting after epoch %d; rejected messages: %d %s; re-sent inputs ignored: %d; incarnation %d",
                      args.uav, node.k_done, node.rejects.total, node.rejects.as_dict(), node.duplicates, node.inc)
             cpu, c0 = time.process_time(), getattr(node, "cpu_first", None)
+            log.info("messages received by kind: %s", node.inbox.counts)
             log.info("CPU %.2f s (start-up %s s, epochs %s s: estimator %.2f s, gathering peer states %.2f s)", cpu,
                      "-" if c0 is None else f"{c0:.2f}", "-" if c0 is None else f"{cpu - c0:.2f}", node.cpu_est,
                      node.cpu_wait)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import struct
+import sys
 from typing import Annotated
 
 import numpy as np
@@ -37,6 +38,7 @@ _STATE_HDR = struct.Struct("<3sBiiiIII")
 _INPUT_HDR = struct.Struct("<3sBI")
 _STATE_NF = 22  # t, pos 3, cov 9, vel 3, delta_m, n_links, quat 4, then n range values
 _STATE_FIXED = struct.Struct("<22d")
+_LITTLE = sys.byteorder == "little"  # the frame is little-endian: native arrays can view it
 
 
 def _check_magic(payload: bytes, magic: bytes, min_len: int) -> None:
@@ -100,10 +102,18 @@ def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = 
         raise WireError("invalid", "bearing out of range (|az| <= pi, |el| <= pi/2, sigma > 0)")
     check_scope(u, k, uav, min_k)
     traj = np.array(fx[o_w:]).reshape(w, 3)  # one array; each epoch's position is a row of it
-    return NodeState(uav=u, k=k, r=r, t=fx[0], pos=np.array(fx[1:4]), pos_cov=np.array(fx[4:13]).reshape(3, 3),
-                     vel=np.array(fx[13:16]), delta_m=fx[16], ranges=dict(zip(ids[:n], rng)),
-                     quat=np.array(q) if any(q) else None, n_links=int(fx[17]),
-                     traj=dict(zip(kids, traj)), bearings=dict(zip(ids[n:n + m], zip(az, el, sg))))
+    st = NodeState(uav=u, k=k, r=r, t=fx[0], pos=np.array(fx[1:4]), pos_cov=np.array(fx[4:13]).reshape(3, 3),
+                   vel=np.array(fx[13:16]), delta_m=fx[16], ranges=dict(zip(ids[:n], rng)),
+                   quat=np.array(q) if any(q) else None, n_links=int(fx[17]),
+                   traj=dict(zip(kids, traj)), bearings=dict(zip(ids[n:n + m], zip(az, el, sg))))
+    bid = ids[n:n + m]
+    if m and _LITTLE and type(payload) is bytes and all(a < b for a, b in zip(bid, bid[1:])):
+        # the encoder's order (by target, no repeats): NodeState.bearing_rows are the frame's bytes
+        # as they lie (read-only views; the same numbers its cached property would build)
+        base = _STATE_HDR.size + 8 * o_b
+        st.__dict__["bearing_rows"] = (np.frombuffer(payload, np.int64, m, _STATE_HDR.size + 8 * (nf + n)),
+                                       np.frombuffer(payload, np.float64, 3 * m, base).reshape(m, 3))
+    return st
 
 
 class GnssPart(BaseModel):
