@@ -218,7 +218,8 @@ def test_commit_in_the_next_update_gives_one_smoother_update_per_epoch():
     assert all(len(c) == 1 for c in updates.values())
     assert all(n._pending_commit is not None for n in nodes_def.values())  # each commit waits for epoch 22
     for bad in ({"commit_update": "next_epoch", "report": "smoother"},
-                {"commit_update": "next_epoch", "round_warm_start": True, "round_solver": "own"}):
+                {"commit_update": "next_epoch", "round_warm_start": True, "round_solver": "own"},
+                {"commit_update": "next_epoch", "relink_s": 5.0}, {"commit_update": "next_epoch", "commit_weight": 0.0}):
         with pytest.raises(ValueError, match="commit_update"):
             validate_tuning(bad)
 

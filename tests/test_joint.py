@@ -142,6 +142,45 @@ def test_the_c_kernel_rejects_bad_arrays_without_touching_memory():
         _kernels.joint_system(*ok[:12], ro)
 
 
+def test_the_c_kernels_refuse_aliased_misaligned_or_oversized_buffers(tmp_path):
+    """Hostile buffers (found by an outside review): an output that shares memory with an input
+    (the indices, checked before H is written, would be overwritten), an array that is not 8-byte
+    aligned, and a system whose n*n*8 would overflow. Each raises ValueError; run in a subprocess so
+    a crash would show as its exit status."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent(f"""
+        import numpy as np
+        from swarmnav.estimators import _kernels
+        fails = []
+        def refused(f, *a):
+            try:
+                f(*a)
+            except ValueError:
+                return
+            fails.append(f.__name__)
+        x, info = np.zeros((1, 3)), np.eye(3)[None]
+        H = np.empty((3, 3)); g = np.empty(3)
+        ia = H.reshape(-1).view(np.int64)  # the indices live inside the output H
+        ib = np.zeros(9, np.int64); w = np.ones(9)
+        e_i, e_f = np.zeros(0, np.int64), np.zeros(0)
+        refused(_kernels.joint_system, x, x, info, ia, ib, w, w, e_i, e_i, np.zeros((0, 2)), e_f, H, g)
+        raw = np.zeros(8 * 4 + 1, np.uint8)[1:].view(np.float64)  # 4 doubles at an odd address
+        refused(_kernels.cho_solve, np.eye(2), raw[:2], np.empty(2))
+        H2 = 2.0 * np.eye(2)
+        refused(_kernels.spd_solve, H2, np.ones(2), H2.reshape(-1)[:2])  # x inside H
+        big = np.memmap(r"{tmp_path / 'big.f8'}", np.float64, "w+", shape=(2 ** 31,))  # sparse file
+        refused(_kernels.cho_solve, np.zeros((0, 0)), big, big)
+        refused(_kernels.spd_solve, np.zeros((0, 0)), big, big)
+        print("FAILS", fails)
+    """)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, (r.returncode, r.stderr[-2000:])
+    assert "FAILS []" in r.stdout, r.stdout
+
+
 def test_azel_observations_takes_every_bearing_inside_the_neighbourhood_in_order():
     """Observer in ``nodes`` order, then target; targets outside the neighbourhood, a bearing of
     itself and a node without a state are left out."""

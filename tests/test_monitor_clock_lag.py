@@ -68,3 +68,34 @@ def test_an_estimate_the_clock_never_opens_is_rejected_as_future(mon):
     mon.handle("est", _item(keys.uav("r1", 2, "estimate"), _est(2, 50)))
     mon.release_held(expire=True)
     assert mon.core.rejected == {"est:future": 2} and not mon.held
+
+
+def test_a_lost_estimate_is_asked_for_again_until_its_node_answers(mon):
+    """An estimate lost while its node's liveliness token is not (yet) seen (e.g. right after a
+    router restart) is recovered once the node is live: a suspect stays one until its estimate
+    arrives, and only the suspects' own nodes are queried, at most every RECOVER_WAIT epochs."""
+    queried = []
+
+    def get(sel, timeout):
+        u = keys.parse(sel.split("?")[0]).uav
+        queried.append((mon.clock_k, u))
+        h = M.HistoryMsg.of(u, [], [M.decode(M.EstimateMsg, _est(u, 5))]).encode() if u == 2 else b""
+        return [SimpleNamespace(ok=SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: h)))] if u == 2 else []
+
+    mon.s = SimpleNamespace(get=get)
+    who = [1, 2, 3, 4, 5]
+    for k in range(1, 18):
+        for u in who:
+            if (u, k) != (2, 5):  # UAV 2's estimate of epoch 5 is lost
+                mon.core.on_estimate(M.decode(M.EstimateMsg, _est(u, k)), _est(u, k))
+    mon.alive = {1, 3, 4, 5}  # UAV 2 not seen live yet
+    for clock in range(7, 9):
+        mon.clock_k = clock
+        mon.check_missing(clock - 2, who)
+    assert queried == []  # nobody to ask: UAV 2 is not live, and the others are not asked
+    mon.alive.add(2)
+    for clock in range(9, 20):
+        mon.clock_k = clock
+        mon.check_missing(clock - 2, who)
+    assert queried == [(9, 2)]  # asked once it is live, only it, and answered
+    assert np.isfinite(mon.core.res.pos[4, mon.core.col[2], 0]) and not mon.suspect

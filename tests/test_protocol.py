@@ -41,3 +41,25 @@ def test_round_index_answers_as_a_scan_of_every_state():
         truth = {j for j, s in states.items() if s.r == 0 and np.sum((s.pos - p) ** 2) <= radius ** 2}
         assert truth <= near  # every one within the radius; the caller tests the distance
         assert all(states[j].r == 0 for j in near)
+
+
+def test_round_index_near_keeps_a_peer_at_exactly_the_radius_and_survives_a_diverged_node():
+    """Edge cases an outside review found: a peer at exactly the radius whose cell, by rounding, lies
+    two cells from the node's (the scan keeps it: d² <= R²); a NaN own position and a radius too
+    small for the grid, which raised in the in-process run (the scan just finds no one near)."""
+    s = {1: NodeState(1, 3, 0, 3.0, np.array([30.0, 0.0, 0.0]), np.eye(3), np.zeros(3)),
+         2: NodeState(2, 3, 0, 3.0, np.array([500.0, 0.0, 0.0]), np.eye(3), np.zeros(3))}
+    p = np.array([-1e-17, 0.0, 0.0])
+    assert float(np.sum((s[1].pos - p) ** 2)) <= 30.0 ** 2  # the scan keeps peer 1
+    assert 1 in RoundIndex(s).round0_near(p, 30.0)
+    assert RoundIndex(s).round0_near(np.array([np.nan, 0.0, 0.0]), 30.0) == [1, 2]  # the scan's candidates
+    assert RoundIndex(s).round0_near(p, 1e-310) == [1, 2]
+    rng = np.random.default_rng(5)  # and at random: every peer within R is a candidate
+    for _ in range(300):
+        R = float(rng.choice([1.0, 30.0, 400.0]))
+        p = rng.uniform(-3 * R, 3 * R, 3)
+        d = rng.normal(size=3)
+        q = p + R * d / np.linalg.norm(d)  # on the sphere, up to rounding
+        st = {1: NodeState(1, 3, 0, 3.0, q, np.eye(3), np.zeros(3))}
+        if float(np.sum((q - p) ** 2)) <= R * R:
+            assert RoundIndex(st).round0_near(p, R) == [1]

@@ -41,7 +41,9 @@ FUTURE_HOLD_S = 5.0
 # estimate merely still in flight (the estimates' pump thread behind the clock's on a loaded machine)
 # is no reason to query every node: each reply holds 64 estimates, and a monitor that fell behind at
 # the start of a run queried on every epoch (paper 1000 s: ~80 rounds of 18 queries, ~10 CPU-s), which
-# kept it behind.
+# kept it behind. A suspect stays one until its estimate arrives: a query that found nothing (the
+# node not live yet after a router restart, a reply lost under load) is repeated every RECOVER_WAIT
+# epochs, to the suspects' own nodes only, while the node still holds it (its last M.EST_HISTORY).
 RECOVER_WAIT = 6
 
 
@@ -109,7 +111,8 @@ class Monitor:
         self.clock_k = 0
         self.held: list[tuple[float, M.EstimateMsg, bytes]] = []  # (hold deadline, estimate, frame), arrival order
         self.recover_calls = self.recovered = 0  # state queries for missing estimates (logged at the end)
-        self.suspect: dict[tuple[int, int], int] = {}  # (uav, epoch) missing at its clock check -> clock epoch then
+        # (uav, epoch) missing at its clock check -> (clock epoch then, clock epoch of the last query or None)
+        self.suspect: dict[tuple[int, int], tuple[int, int | None]] = {}
 
     def setup(self):
         ib = self.inbox
@@ -184,12 +187,13 @@ class Monitor:
                     self.dropped.add(u)
                     self.core.event("dropout", u, t=t_sim)
 
-    def recover(self, k: int) -> None:
-        """Query the nodes for estimates of epochs up to k that never arrived (sent into an outage)."""
+    def recover(self, k: int, only: set[int] | None = None) -> None:
+        """Query the live nodes (``only``: these) for estimates of epochs up to k that never arrived
+        (sent into an outage, or lost)."""
         c = self.core
         self.recover_calls += 1
         for u in self.uavs:
-            if u not in self.alive:
+            if u not in self.alive or (only is not None and u not in only):
                 continue
             j = self.uavs.index(u)
             if np.isfinite(c.res.pos[: max(k, 0), j, 0]).all():
@@ -208,21 +212,24 @@ class Monitor:
 
     def check_missing(self, k: int, who: list[int]) -> None:
         """Epoch k's estimates of ``who`` (its participants) are due: recover the missing ones that are
-        surely lost (see RECOVER_WAIT); each missing estimate leads to at most one recovery."""
+        surely lost (see RECOVER_WAIT) from their own nodes, again every RECOVER_WAIT epochs until
+        they arrive or their node no longer holds them (whatever is still missing at the end is
+        reported missing: the run is then incomplete)."""
         c = self.core
         for u in c.missing(k, who):
-            self.suspect.setdefault((u, k), self.clock_k)
-        due = False
-        for (u, e), since in list(self.suspect.items()):
+            self.suspect.setdefault((u, k), (self.clock_k, None))
+        due: set[int] = set()
+        for (u, e), (since, asked) in list(self.suspect.items()):
             j = c.col[u]
-            if np.isfinite(c.res.pos[e - 1, j, 0]):  # it came after all
+            if np.isfinite(c.res.pos[e - 1, j, 0]) or self.clock_k - e > 2 * M.EST_HISTORY:  # came, or beyond reach
                 del self.suspect[(u, e)]
-            elif (np.isfinite(c.res.pos[e:, j, 0]).any()
-                  or (self.clock_k - since >= RECOVER_WAIT and not self.inbox.items)):
-                del self.suspect[(u, e)]
-                due = True
+            elif u in self.alive and not self.inbox.items and (
+                    self.clock_k - asked >= RECOVER_WAIT if asked is not None
+                    else np.isfinite(c.res.pos[e:, j, 0]).any() or self.clock_k - since >= RECOVER_WAIT):
+                self.suspect[(u, e)] = (since, self.clock_k)
+                due.add(u)
         if due:
-            self.recover(k)
+            self.recover(k, due)
 
     def handle(self, tag, item):
         kk = parse_key(item.key_expr, self.rejects)

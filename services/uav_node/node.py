@@ -34,7 +34,6 @@ from swarmnav.wire import keys
 from swarmnav.wire import messages as M
 
 HISTORY = 20
-EST_HISTORY = 64  # estimates kept for the state queryable (recovered by the sensor-sim/monitor after an outage)
 RECONNECT_GRACE_S = 3.0
 FUTURE_SLACK = 50  # a peer state this many epochs beyond the clock (and our own) is forged: rejected
 DROP_CONFIRM_S = 0.3  # a peer's token gone this long while the bus is up: dead (or frozen), not an outage  # after the bus comes back, peers' tokens reappear within ~1 s: wait for them
@@ -76,7 +75,7 @@ class Node:
         self.inputs: dict[int, tuple] = {}  # k -> (EpochInput, participants)
         self.states: dict[tuple[int, int], dict[int, NodeState]] = {}  # (k, r) -> uav -> state
         self.history: deque[bytes] = deque(maxlen=HISTORY)  # our last state frames
-        self.est_history: deque[M.EstimateMsg] = deque(maxlen=EST_HISTORY)
+        self.est_history: deque[M.EstimateMsg] = deque(maxlen=M.EST_HISTORY)  # recovered by the sensor-sim/monitor after an outage
         self.k_done = 0  # last completed epoch
         self.inc = 0  # incarnation: bumped at every (re-)bootstrap, carried in the estimates
         self.need_bootstrap = bool(args.rejoin)  # the next epoch starts from a fresh alignment + peers
@@ -359,9 +358,10 @@ class Node:
                 self.republish = False
                 self.publish(self.pub_state, self.history[-1])
             self.waiting = ((k, r), expect)  # the state pump wakes us once all of these are in
-            if expect <= have.keys():
+            missing = expect - have.keys()  # one read of what the pump has stored so far
+            if not missing:
                 break
-            missing = sorted(expect - have.keys())
+            missing = sorted(missing)
             waited = time.monotonic() - t0
             offline = not self.connected()
             if offline and (why := self.abandoned()):

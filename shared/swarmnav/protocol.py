@@ -101,13 +101,22 @@ class RoundIndex:
             ids = [j for j, s in self.states.items() if s.r == 0]
             pos = np.array([self.states[j].pos for j in ids], float).reshape(-1, 3)
             cells: dict[tuple, list[int]] = {}
-            for n, c in enumerate(map(tuple, np.floor(pos / radius).astype(np.int64).tolist())):
+            with np.errstate(over="ignore", invalid="ignore"):  # a NaN or far position: a cell never searched
+                cell_of = np.floor(pos / radius).astype(np.int64).tolist()
+            for n, c in enumerate(map(tuple, cell_of)):
                 cells.setdefault(c, []).append(n)
             self._grids[radius] = (cells, np.array(ids, np.int64), pos)
         cells, ids, _ = self._grids[radius]
-        cx, cy, cz = (math.floor(float(v) / radius) for v in p)
-        rows = [n for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)
-                for n in cells.get((cx + dx, cy + dy, cz + dz), ())]
+        # every cell the ball may touch, bounds padded against the divisions' rounding (a peer at
+        # exactly the radius can land two cells away): extra candidates are fine, a missed one is not
+        pad = radius * (1.0 + 1e-9)
+        lo = [(float(v) - pad) / radius for v in p]
+        hi = [(float(v) + pad) / radius for v in p]
+        if not all(abs(v) < 2.0 ** 52 for v in lo + hi):  # a diverged (NaN) p, or a radius too small
+            return self.round0_ids()  # for the grid: the caller's distance test decides, as in the scan
+        (x0, y0, z0), (x1, y1, z1) = map(math.floor, lo), map(math.floor, hi)
+        rows = [n for cx in range(x0, x1 + 1) for cy in range(y0, y1 + 1) for cz in range(z0, z1 + 1)
+                for n in cells.get((cx, cy, cz), ())]
         return ids[sorted(rows)].tolist()
 
     def round0_ids(self) -> list[int]:

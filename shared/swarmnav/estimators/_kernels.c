@@ -3,7 +3,8 @@
    joint_system  the joint snapshot's (joint.py :func:`solve`), every position of a neighbourhood;
    own_system    one node's own position against its neighbours' broadcasts (rounds.py
                  :func:`normal_equations`: the round solves, the commit, the reported solve);
-   cho_solve     the two triangular solves after numpy's Cholesky factorisation (joint.py).
+   cho_solve     the two triangular solves after numpy's Cholesky factorisation (joint.py);
+   spd_solve     a whole Cholesky solve of a small system (joint.py, up to ~60 unknowns).
 
    joint_system:
 
@@ -19,12 +20,14 @@
                B = c JᵀJ, v = c Jᵀ res          -> the same pattern on (t, o)
      prior i:  H_ii += Λ_i, g_i += Λ_i (μ_i - x_i)
 
-   Units: m, rad. Inputs are C-contiguous float64 (indices int64); the caller (joint.py) owns the
-   shapes; they are checked here anyway, and a mismatch raises ValueError. No I/O, no allocation
-   beyond the buffers' views. */
+   Units: m, rad. Inputs are C-contiguous, 8-byte aligned float64 (indices int64); the callers own
+   the shapes; they are checked here anyway: a wrong dtype, size, alignment, an index out of range,
+   a system too large to address, or an output that shares memory with another argument raises
+   ValueError (never a read or write outside the buffers). No I/O; spd_solve allocates its factor. */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
+#include <stdint.h>
 #include <string.h>
 
 static double wrap_angle(double a) {
@@ -51,8 +54,22 @@ static int get_buf(PyObject *o, buf_t *bt, const char *fmt, int writable, const 
         PyErr_Format(PyExc_ValueError, "%s: expected %s", name, fmt[0] == 'd' ? "float64" : "int64");
         return -1;
     }
+    if (((uintptr_t)bt->b.buf & 7) != 0) {
+        PyErr_Format(PyExc_ValueError, "%s: not 8-byte aligned (pass a fresh array)", name);
+        return -1;
+    }
     return 0;
 }
+
+/* 1 if buffers i and j share any byte. */
+static int overlap(const buf_t *b, int i, int j) {
+    const char *a0 = b[i].b.buf, *b0 = b[j].b.buf;
+    return b[i].b.len > 0 && b[j].b.len > 0 && a0 < b0 + b[j].b.len && b0 < a0 + b[i].b.len;
+}
+
+/* Systems up to this many unknowns (far beyond any neighbourhood: 3 per UAV) keep n*n*8 well inside
+   Py_ssize_t; a larger one is refused before any size product is formed. */
+#define MAX_UNKNOWNS ((Py_ssize_t)1 << 20)
 
 /* Acquire the n buffers of a call's positional arguments (fmts[i]: 'd' float64, 'q' int64; the
    arguments from first_writable on are outputs). On failure the exception is set, every buffer
@@ -73,6 +90,16 @@ static int get_bufs(PyObject *args, buf_t *b, int n, const char *fmts, const cha
             return -1;
         }
     }
+    /* an output must not share memory with any other argument: a kernel checks its inputs (e.g.
+       indices) once, before it writes */
+    for (i = first_writable; i < n; i++)
+        for (int j = 0; j < n; j++)
+            if (j != i && overlap(b, i, j)) {
+                PyErr_Format(PyExc_ValueError, "%s: output %s shares memory with %s", fn, names[i], names[j]);
+                for (int k = 0; k < n; k++)
+                    if (b[k].held) PyBuffer_Release(&b[k].b);
+                return -1;
+            }
     return 0;
 }
 
@@ -88,6 +115,10 @@ static PyObject *joint_system(PyObject *self, PyObject *args) {
     PyObject *ret = NULL;
     if (get_bufs(args, b, 13, "dddqqddqqdddd", names, 11, "joint_system") < 0) return NULL;
     Py_ssize_t n = b[0].b.len / (3 * 8), m = b[3].b.len / 8, M = b[7].b.len / 8, N = 3 * n;
+    if (N > MAX_UNKNOWNS) {
+        PyErr_SetString(PyExc_ValueError, "joint_system: system too large");
+        goto done;
+    }
     if (b[0].b.len != n * 24 || b[1].b.len != n * 24 || b[2].b.len != n * 72 || b[4].b.len != m * 8 ||
         b[5].b.len != m * 8 || b[6].b.len != m * 8 || b[8].b.len != M * 8 || b[9].b.len != M * 16 ||
         b[10].b.len != M * 8 || b[11].b.len != N * N * 8 || b[12].b.len != N * 8) {
@@ -269,6 +300,10 @@ static PyObject *cho_solve(PyObject *self, PyObject *args) {
     PyObject *ret = NULL;
     if (get_bufs(args, b, 3, "ddd", names, 2, "cho_solve") < 0) return NULL;
     Py_ssize_t n = b[1].b.len / 8;
+    if (n > MAX_UNKNOWNS) {
+        PyErr_SetString(PyExc_ValueError, "cho_solve: system too large");
+        goto done;
+    }
     if (b[0].b.len != n * n * 8 || b[2].b.len != n * 8) {
         PyErr_SetString(PyExc_ValueError, "cho_solve: inconsistent array sizes");
         goto done;
@@ -291,6 +326,10 @@ static PyObject *spd_solve(PyObject *self, PyObject *args) {
     PyObject *ret = NULL;
     if (get_bufs(args, b, 3, "ddd", names, 2, "spd_solve") < 0) return NULL;
     Py_ssize_t n = b[1].b.len / 8;
+    if (n > MAX_UNKNOWNS) {
+        PyErr_SetString(PyExc_ValueError, "spd_solve: system too large");
+        goto done;
+    }
     if (b[0].b.len != n * n * 8 || b[2].b.len != n * 8) {
         PyErr_SetString(PyExc_ValueError, "spd_solve: inconsistent array sizes");
         goto done;

@@ -118,6 +118,9 @@ class EstimatorTuning(BaseModel):
             raise ValueError("report = \"smoother\" reports the smoother after the commit: set commit_update = \"epoch_end\"")
         if self.commit_update == "next_epoch" and self.round_warm_start:
             raise ValueError("round_warm_start carries the correction past the committed smoother: set commit_update = \"epoch_end\"")
+        if self.commit_update == "next_epoch" and (self.relink_s > 0 or self.commit_weight == 0):
+            raise ValueError("commit_update = \"next_epoch\" has nothing to defer with relink_s > 0 (the relinked "
+                             "commit updates the smoother itself) or commit_weight = 0 (no commit): remove it")
         return self
 
 

@@ -102,6 +102,9 @@ class LinksMsg(UavMsg):
     links: list[LinkMsg]
 
 
+EST_HISTORY = 64  # estimates a node keeps for its state queryable (what a HistoryMsg can carry back)
+
+
 class HistoryMsg(Msg):
     """Reply of the state queryable: the node's latest state frames (oldest first, base64 of
     :func:`.frames.encode_state`, the bytes it published) and its recent estimates."""
