@@ -892,10 +892,11 @@ def test_range_memory_moved_rows_exact_and_jacobian():
 
 @pytest.mark.parametrize("seed", range(2))
 def test_grouped_range_meat(seed):
-    """rounds.grouped_range_meat: the covariance of g = Σ a·u·(v + uᵀe_group) for range rows whose
-    neighbour error e is shared within a group (the moved rows of a neighbour and its current row):
-    equal to the per-row meat with one row per group, and to a Monte Carlo with shared errors."""
-    from swarmnav.estimators.rounds import grouped_range_meat
+    """The sandwich meat of range rows whose neighbour error e is shared within a group (the moved
+    rows of a neighbour and its current row; rounds.link_meat, C kernel own_meat): the covariance of
+    g = Σ a·u·(v + uᵀe_group), equal to the per-row meat with one row per group, and to a Monte
+    Carlo with shared errors."""
+    from swarmnav.estimators.rounds import Links, link_meat
 
     rng = np.random.default_rng(seed)
     n = 6
@@ -908,6 +909,14 @@ def test_grouped_range_meat(seed):
     group = np.array([4, 7, 9, 4, 7, 4])
     gi = {4: 0, 7: 1, 9: 2}
     P = np.array([Pg[gi[g]] for g in group])
+    p0 = np.zeros(3)
+
+    def grouped_range_meat(u, a, sig2, P, grp):
+        # rows at unit vectors u from p0, solved without neighbour covariance (var = σ²: w = a·σ²),
+        # the error model's neighbour covariance P
+        rows = (-100.0 * u, np.zeros((n, 3, 3)), a * sig2, np.zeros((n, 3)), sig2, np.zeros(n))
+        return link_meat(Links(rng=rows, rng_group=grp), p0, Links(rng=(rows[0], P, *rows[2:])), None)
+
     # one row per group: the per-row formula Σ a²(σ² + uᵀPu) uuᵀ
     single = grouped_range_meat(u, a, sig2, P, np.arange(n))
     per_row = (u * (a * a * (sig2 + np.einsum("ni,nij,nj->n", u, P, u)))[:, None]).T @ u

@@ -92,3 +92,69 @@ def test_own_system_is_built_from_the_measurement_models():
     _kernels.own_system(p, *[np.asarray(x, float) for x in L.rng + L.azel], H, g)
     np.testing.assert_allclose(H, H_ref, rtol=1e-12)
     np.testing.assert_allclose(g, g_ref, rtol=1e-12, atol=1e-12)
+
+
+def _meat_numpy(L: Links, p: np.ndarray, L_true: Links, info) -> np.ndarray:
+    """The sandwich meat written out with numpy (the formulas of rounds.link_meat's docstring; what
+    the C kernel own_meat replaced): the reference the kernel is held to."""
+    meat = np.zeros((3, 3)) if info is None else info.copy()
+    if L.rng is not None:
+        pj, Pj, w, lev, sig2, _ = L.rng
+        d = p + lev - pj
+        u = d / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
+        a = w / (sig2 + np.einsum("ni,nij,nj->n", u, Pj, u))
+        Pt_rng = L_true.rng[1]
+        if L.rng_group is None:
+            meat += (u * (a * a * (sig2 + np.einsum("ni,nij,nj->n", u, Pt_rng, u)))[:, None]).T @ u
+        else:
+            meat += (u * (a * a * sig2)[:, None]).T @ u
+            for g in np.unique(L.rng_group):
+                rows = np.flatnonzero(L.rng_group == g)
+                G = sum(a[r] * np.outer(u[r], u[r]) for r in rows)
+                meat += G @ Pt_rng[rows[0]] @ G
+    if L.azel is not None:
+        pt, Pt, wt, st2, _ = L.azel
+        d = pt - p
+        e, n, up = d[:, 0], d[:, 1], d[:, 2]
+        h2 = np.maximum(e * e + n * n, 1e-12)
+        h, r2 = np.sqrt(h2), h2 + up * up
+        J = np.zeros((len(d), 2, 3))
+        J[:, 0, 0], J[:, 0, 1] = -n / h2, e / h2
+        J[:, 1, 0], J[:, 1, 1], J[:, 1, 2] = -e * up / (h * r2), -n * up / (h * r2), h / r2
+        I2 = np.eye(2) * st2[:, None, None]
+        CiJ = (np.linalg.inv(J @ Pt @ J.transpose(0, 2, 1) + I2) * wt[:, None, None]) @ J
+        meat += np.einsum("mji,mjk,mkl->il", CiJ, J @ L_true.azel[1] @ J.transpose(0, 2, 1) + I2, CiJ)
+    return meat
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+@pytest.mark.parametrize("grouped", [False, True])
+def test_the_sandwich_meat_kernel_equals_its_formulas(seed, grouped):
+    """rounds.link_meat (C kernel own_meat) against the numpy formulas: ranges with and without
+    shared-error groups, az/el, a prior; the 'true' covariances differ from the solved ones."""
+    from dataclasses import replace
+
+    from swarmnav.estimators.rounds import link_meat
+
+    rng = np.random.default_rng(seed)
+    p, L = _links(seed)
+    if grouped:
+        L = replace(L, rng_group=np.array([7, 2, 7, 4, 2, 7]))
+    pj, Pj, w, lev, sig2, z = L.rng
+    pt, Pt, wt, st2, zt = L.azel
+    L_true = replace(L, rng=(pj, Pj * rng.uniform(1, 3, (len(w), 1, 1)), w, lev, sig2, z),
+                     azel=(pt, Pt * rng.uniform(1, 3, (len(wt), 1, 1)), wt, st2, zt))
+    info = np.diag([2.0, 3.0, 1.0])
+    for lnk, tru, inf in ((L, L_true, info), (L, L_true, None), (Links(rng=L.rng, rng_group=L.rng_group), L_true, info),
+                          (Links(azel=L.azel), L_true, None), (Links(), Links(), info)):
+        ref = _meat_numpy(lnk, p, tru, inf)
+        got = link_meat(lnk, p, tru, inf)
+        np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+    # inputs the kernel refuses
+    args = [np.ascontiguousarray(a, float) for a in (p, pj, Pj, w, lev, sig2, Pj)]
+    bad_group = np.array([0, 1, -1, 0, 0, 0], np.int64)
+    with pytest.raises(ValueError):
+        _kernels.own_meat(*args, bad_group, *(np.ascontiguousarray(a, float) for a in (pt, Pt, wt, st2, Pt)), np.zeros((3, 3)))
+    with pytest.raises(ValueError):
+        _kernels.own_meat(*args, np.zeros(2, np.int64), *(np.ascontiguousarray(a, float) for a in (pt, Pt, wt, st2, Pt)),
+                          np.zeros((3, 3)))

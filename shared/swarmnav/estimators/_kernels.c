@@ -3,6 +3,7 @@
    joint_system  the joint snapshot's (joint.py :func:`solve`), every position of a neighbourhood;
    own_system    one node's own position against its neighbours' broadcasts (rounds.py
                  :func:`normal_equations`: the round solves, the commit, the reported solve);
+   own_meat      the sandwich "meat" of those links (rounds.py :func:`link_meat`);
    cho_solve     the two triangular solves after numpy's Cholesky factorisation (joint.py);
    spd_solve     a whole Cholesky solve of a small system (joint.py, up to ~60 unknowns).
 
@@ -277,6 +278,134 @@ done:
     return ret;
 }
 
+/* own_meat(p, pj, Pj, w, lev, sig2, Pj_true, group, pt, Pt, wt, st2, Pt_true, meat): add to meat (3, 3)
+   the sandwich "meat" M = Σ Jᵀ W·R·W J of the range and az/el links of own_system (rounds.py
+   link_meat), W the weights of the links as solved (neighbour covariances Pj / Pt), R their error
+   covariances under the error model (Pj_true / Pt_true):
+     range  k: u, var as in own_system, a = w_k/var;
+               no groups (group empty):  M += a² (σ²_k + uᵀ Pj_true_k u) u uᵀ
+               groups (group (R,) ids ≥ 0, rows of one neighbour share its position error):
+                 M += Σ_k a² σ²_k u uᵀ + Σ_g G_g Pj_true_first(g) G_g,  G_g = Σ_{k in g} a u uᵀ,
+                 groups in ascending id, first(g) its first row
+     az/el k: J, C = J Pt_k Jᵀ + σ²_k I as in own_system, CiJ = w_k C⁻¹ J,
+               M += CiJᵀ (J Pt_true_k Jᵀ + σ²_k I) CiJ */
+static PyObject *own_meat(PyObject *self, PyObject *args) {
+    static const char *names[14] = {"p", "pj", "Pj", "w", "lev", "sig2", "Pj_true", "group", "pt", "Pt", "wt",
+                                    "st2", "Pt_true", "meat"};
+    buf_t b[14];
+    PyObject *ret = NULL;
+    double *G = NULL;
+    Py_ssize_t *first = NULL;
+    if (get_bufs(args, b, 14, "dddddddqdddddd", names, 13, "own_meat") < 0) return NULL;
+    Py_ssize_t R = b[3].b.len / 8, A = b[10].b.len / 8, NG = b[7].b.len / 8;
+    if (b[0].b.len != 24 || b[1].b.len != R * 24 || b[2].b.len != R * 72 || b[4].b.len != R * 24 ||
+        b[5].b.len != R * 8 || b[6].b.len != R * 72 || (NG != 0 && NG != R) || b[8].b.len != A * 24 ||
+        b[9].b.len != A * 72 || b[11].b.len != A * 8 || b[12].b.len != A * 72 || b[13].b.len != 72) {
+        PyErr_SetString(PyExc_ValueError, "own_meat: inconsistent array sizes");
+        goto done;
+    }
+    const double *p = b[0].b.buf, *pj = b[1].b.buf, *Pj = b[2].b.buf, *w = b[3].b.buf, *lev = b[4].b.buf,
+                 *sig2 = b[5].b.buf, *Pjt = b[6].b.buf, *pt = b[8].b.buf, *Pt = b[9].b.buf, *wt = b[10].b.buf,
+                 *st2 = b[11].b.buf, *Ptt = b[12].b.buf;
+    const long long *group = b[7].b.buf;
+    double *M = b[13].b.buf;
+    Py_ssize_t ng = 0;  /* number of group slots: max id + 1 */
+    for (Py_ssize_t k = 0; k < NG; k++) {
+        if (group[k] < 0 || group[k] >= MAX_UNKNOWNS) {
+            PyErr_SetString(PyExc_ValueError, "own_meat: group id out of range");
+            goto done;
+        }
+        if (group[k] + 1 > ng) ng = (Py_ssize_t)group[k] + 1;
+    }
+    if (NG) {
+        G = PyMem_Calloc((size_t)ng * 9, sizeof(double));
+        first = PyMem_Malloc((size_t)ng * sizeof(Py_ssize_t));
+        if (G == NULL || first == NULL) {
+            PyErr_NoMemory();
+            goto done;
+        }
+        for (Py_ssize_t q = 0; q < ng; q++) first[q] = -1;
+    }
+    for (Py_ssize_t k = 0; k < R; k++) {
+        double d[3], u[3];
+        for (int q = 0; q < 3; q++) d[q] = p[q] + lev[3 * k + q] - pj[3 * k + q];
+        double h = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+        double hh = h > 1e-9 ? h : 1e-9;
+        for (int q = 0; q < 3; q++) u[q] = d[q] / hh;
+        const double *P = Pj + 9 * k, *Ptr = Pjt + 9 * k;
+        double var = sig2[k], var_t = sig2[k];
+        for (int q = 0; q < 3; q++) {
+            var += u[q] * (P[3 * q] * u[0] + P[3 * q + 1] * u[1] + P[3 * q + 2] * u[2]);
+            var_t += u[q] * (Ptr[3 * q] * u[0] + Ptr[3 * q + 1] * u[1] + Ptr[3 * q + 2] * u[2]);
+        }
+        double a = w[k] / var;
+        double c = NG ? a * a * sig2[k] : a * a * var_t;
+        for (int q = 0; q < 3; q++)
+            for (int s2 = 0; s2 < 3; s2++) M[3 * q + s2] += c * u[q] * u[s2];
+        if (NG) {
+            Py_ssize_t gq = (Py_ssize_t)group[k];
+            if (first[gq] < 0) first[gq] = k;
+            double *Gg = G + 9 * gq;
+            for (int q = 0; q < 3; q++)
+                for (int s2 = 0; s2 < 3; s2++) Gg[3 * q + s2] += a * u[q] * u[s2];
+        }
+    }
+    for (Py_ssize_t gq = 0; gq < ng; gq++) {  /* Σ_g G P G, in ascending group id */
+        if (first[gq] < 0) continue;
+        const double *Gg = G + 9 * gq, *P = Pjt + 9 * first[gq];
+        double GP[9];
+        for (int q = 0; q < 3; q++)
+            for (int s2 = 0; s2 < 3; s2++)
+                GP[3 * q + s2] = Gg[3 * q] * P[s2] + Gg[3 * q + 1] * P[3 + s2] + Gg[3 * q + 2] * P[6 + s2];
+        for (int q = 0; q < 3; q++)
+            for (int s2 = 0; s2 < 3; s2++)
+                M[3 * q + s2] += GP[3 * q] * Gg[s2] + GP[3 * q + 1] * Gg[3 + s2] + GP[3 * q + 2] * Gg[6 + s2];
+    }
+    for (Py_ssize_t k = 0; k < A; k++) {
+        double e = pt[3 * k] - p[0], nn = pt[3 * k + 1] - p[1], uu = pt[3 * k + 2] - p[2];
+        double h2 = e * e + nn * nn;
+        if (h2 < 1e-12) h2 = 1e-12;
+        double h = sqrt(h2), r2 = h2 + uu * uu, hr2 = h * r2;
+        double J[6] = {-nn / h2, e / h2, 0.0, -e * uu / hr2, -nn * uu / hr2, h / r2};
+        double C[4], Ct[4];
+        for (int which = 0; which < 2; which++) {  /* C = J P Jᵀ + σ² I with P = Pt (which 0), Pt_true (1) */
+            const double *P = (which ? Ptt : Pt) + 9 * k;
+            double JP[6];
+            for (int r = 0; r < 2; r++)
+                for (int s2 = 0; s2 < 3; s2++)
+                    JP[3 * r + s2] = J[3 * r] * P[s2] + J[3 * r + 1] * P[3 + s2] + J[3 * r + 2] * P[6 + s2];
+            double *out = which ? Ct : C;
+            for (int r = 0; r < 2; r++)
+                for (int c2 = 0; c2 < 2; c2++)
+                    out[2 * r + c2] = JP[3 * r] * J[3 * c2] + JP[3 * r + 1] * J[3 * c2 + 1] + JP[3 * r + 2] * J[3 * c2 + 2];
+            out[0] += st2[k];
+            out[3] += st2[k];
+        }
+        double det = C[0] * C[3] - C[1] * C[2];
+        double i00 = wt[k] * C[3] / det, i01 = -wt[k] * C[1] / det, i10 = -wt[k] * C[2] / det,
+               i11 = wt[k] * C[0] / det;
+        double CJ[6];  /* w C⁻¹ J (2 x 3) */
+        for (int s2 = 0; s2 < 3; s2++) {
+            CJ[s2] = i00 * J[s2] + i01 * J[3 + s2];
+            CJ[3 + s2] = i10 * J[s2] + i11 * J[3 + s2];
+        }
+        double RC[6];  /* R_true CiJ (2 x 3) */
+        for (int s2 = 0; s2 < 3; s2++) {
+            RC[s2] = Ct[0] * CJ[s2] + Ct[1] * CJ[3 + s2];
+            RC[3 + s2] = Ct[2] * CJ[s2] + Ct[3] * CJ[3 + s2];
+        }
+        for (int q = 0; q < 3; q++)
+            for (int s2 = 0; s2 < 3; s2++) M[3 * q + s2] += CJ[q] * RC[s2] + CJ[3 + q] * RC[3 + s2];
+    }
+    ret = Py_None;
+    Py_INCREF(ret);
+done:
+    PyMem_Free(G);
+    PyMem_Free(first);
+    release_bufs(b, 14);
+    return ret;
+}
+
 /* x = (L Lᵀ)⁻¹ rhs for a lower-triangular L (n x n): forward, then back substitution (x may be rhs). */
 static void triangular_solves(const double *L, Py_ssize_t n, const double *rhs, double *x) {
     for (Py_ssize_t i = 0; i < n; i++) {  /* L y = b */
@@ -377,6 +506,8 @@ static PyMethodDef methods[] = {
     {"spd_solve", spd_solve, METH_VARARGS,
      "spd_solve(H, b, x) -> bool: x = H^-1 b by Cholesky (H symmetric positive definite, lower triangle read); "
      "False if H is not numerically positive definite. float64, C-contiguous."},
+    {"own_meat", own_meat, METH_VARARGS,
+     "own_meat(p, pj, Pj, w, lev, sig2, Pj_true, group, pt, Pt, wt, st2, Pt_true, meat): add the sandwich meat of a node's links to meat (3, 3)"},
     {"own_system", own_system, METH_VARARGS,
      "own_system(p, pj, Pj, w, lev, sig2, z, pt, Pt, wt, st2, zt, H, g): add the range and az/el factors of "
      "one position p (3,) against its neighbours to H (3, 3) and g (3,). float64, C-contiguous."},

@@ -23,9 +23,7 @@ import numpy as np
 
 from . import _kernels  # C: built by `make setup` (setup.py)
 from . import detection as det
-from ..models.bearing import azel_jacobians, noise_with_target
 from ..models.tdoa import tdoa_h
-from ..models.uwb_range import ranges, variance_with_peer
 
 
 @dataclass
@@ -164,45 +162,17 @@ def _azel_arrays(azel: tuple | None) -> tuple:
 def link_meat(L: Links, p: np.ndarray, L_true: Links, info: np.ndarray | None) -> np.ndarray:
     """The sandwich "meat" M = Σ JᵀW·R·WJ (+ info) of the range and az/el links ``L`` at p, R from
     the neighbours' covariances in ``L_true`` (:func:`normal_equations`; the tdoa rows' share is
-    added there)."""
-    meat = np.zeros((3, 3)) if info is None else info.copy()
-    if L.rng is not None:
-        pj, Pj, w, lev, sig2, z = L.rng
-        _, u = ranges(p + lev - pj)
-        a = w / variance_with_peer(sig2, u, Pj)
-        if L.rng_group is None:
-            meat += (u * (a * a * variance_with_peer(sig2, u, L_true.rng[1]))[:, None]).T @ u
-        else:
-            meat += grouped_range_meat(u, a, sig2, L_true.rng[1], L.rng_group)
-    if L.azel is not None:
-        pt, Pt, wt, st2, z = L.azel
-        _, _, Jt = azel_jacobians(pt - p)
-        CiJ = (inv2(noise_with_target(Jt, Pt, st2)) * wt[:, None, None]) @ Jt
-        meat += np.einsum("mji,mjk,mkl->il", CiJ, noise_with_target(Jt, L_true.azel[1], st2), CiJ)
+    added there). Range rows of one neighbour (``L.rng_group``) share its position error:
+    Σ a²σ² uuᵀ + Σ_groups G P G, G = Σ_group a uuᵀ. Built by the C kernel ``own_meat`` (the models
+    of uwb_range and bearing; tests/test_rounds.py holds the numpy formulas it is checked against)."""
+    meat = np.zeros((3, 3)) if info is None else np.array(info, float, order="C")
+    pj, Pj, w, lev, sig2, _ = _rng_arrays(L.rng)
+    Pj_true = _NONE[1] if L.rng is None else np.ascontiguousarray(L_true.rng[1], float)
+    group = np.zeros(0, np.int64) if L.rng is None or L.rng_group is None else np.ascontiguousarray(L.rng_group, np.int64)
+    pt, Pt, wt, st2, _ = _azel_arrays(L.azel)
+    Pt_true = _NONE_AZEL[1] if L.azel is None else np.ascontiguousarray(L_true.azel[1], float)
+    _kernels.own_meat(np.ascontiguousarray(p, float), pj, Pj, w, lev, sig2, Pj_true, group, pt, Pt, wt, st2, Pt_true, meat)
     return meat
-
-
-def inv2(C: np.ndarray) -> np.ndarray:
-    """Inverses of a stack of 2×2 matrices (N, 2, 2) in closed form (numpy's batched LAPACK inverse
-    costs ~10 µs of call overhead for the rounds' ~30 az/el links)."""
-    a, b, c, d = C[:, 0, 0], C[:, 0, 1], C[:, 1, 0], C[:, 1, 1]
-    det = a * d - b * c
-    out = np.empty_like(C)
-    out[:, 0, 0], out[:, 1, 1] = d, a
-    np.negative(C[:, 0, 1:], out=out[:, 0, 1:])  # −b
-    np.negative(C[:, 1, :1], out=out[:, 1, :1])  # −c
-    out /= det[:, None, None]  # (−b)/det = −(b/det): the same bits
-    return out
-
-
-def grouped_range_meat(u: np.ndarray, a: np.ndarray, sig2: np.ndarray, P: np.ndarray, group: np.ndarray) -> np.ndarray:
-    """Σ a²σ² uuᵀ + Σ_groups G P G, G = Σ_group a uuᵀ: the sandwich meat of range rows whose
-    neighbour-position error is shared within a group (P: each row's neighbour covariance)."""
-    meat = (u * (a * a * sig2)[:, None]).T @ u
-    _, first, inv = np.unique(group, return_index=True, return_inverse=True)
-    G = np.zeros((len(first), 3, 3))
-    np.add.at(G, inv, a[:, None, None] * u[:, :, None] * u[:, None, :])
-    return meat + np.einsum("gij,gjk,gkl->il", G, P[first], G)
 
 
 def gauss_newton(p: np.ndarray, normal_eq: Callable[[np.ndarray], tuple], iterations: int) -> np.ndarray:
