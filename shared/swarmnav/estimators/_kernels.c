@@ -39,6 +39,34 @@ static double wrap_angle(double a) {
     return M_PI - m;
 }
 
+/* The models' shared pieces (swarmnav.models.uwb_range, .bearing), each in the one order of
+   operations every kernel uses (so results do not depend on which kernel computed them). */
+
+/* d (3,) -> its length h; u = d / max(h, 1e-9) */
+static double unit_of(const double *d, double *u) {
+    double h = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+    double hh = h > 1e-9 ? h : 1e-9;
+    for (int q = 0; q < 3; q++) u[q] = d[q] / hh;
+    return h;
+}
+
+/* acc + uᵀ P u, accumulated row by row (P 3 x 3 row-major) */
+static double add_quad(double acc, const double *P, const double *u) {
+    for (int q = 0; q < 3; q++) acc += u[q] * (P[3 * q] * u[0] + P[3 * q + 1] * u[1] + P[3 * q + 2] * u[2]);
+    return acc;
+}
+
+/* az/el of δ = (e, n, u) (target − observer) and J = ∂(az, el)/∂target (2 x 3, row-major); *h_out the
+   horizontal distance (floored at 1e-6 m) */
+static void azel_jacobian(double e, double nn, double uu, double *J, double *h_out) {
+    double h2 = e * e + nn * nn;
+    if (h2 < 1e-12) h2 = 1e-12;
+    double h = sqrt(h2), r2 = h2 + uu * uu, hr2 = h * r2;
+    J[0] = -nn / h2; J[1] = e / h2; J[2] = 0.0;
+    J[3] = -e * uu / hr2; J[4] = -nn * uu / hr2; J[5] = h / r2;
+    *h_out = h;
+}
+
 typedef struct { Py_buffer b; int held; } buf_t;
 
 static int get_buf(PyObject *o, buf_t *bt, const char *fmt, int writable, const char *name) {
@@ -164,9 +192,8 @@ static PyObject *joint_system(PyObject *self, PyObject *args) {
     for (Py_ssize_t k = 0; k < m; k++) {
         Py_ssize_t ea = ia[k], eb = ib[k];
         double dv[3] = {x[3 * ea] - x[3 * eb], x[3 * ea + 1] - x[3 * eb + 1], x[3 * ea + 2] - x[3 * eb + 2]};
-        double h = sqrt(dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2]);
-        double hh = h > 1e-9 ? h : 1e-9;
-        double u[3] = {dv[0] / hh, dv[1] / hh, dv[2] / hh}, B[9], v[3];
+        double u[3], B[9], v[3];
+        double h = unit_of(dv, u);
         double res = d[k] - h;
         for (int p = 0; p < 3; p++) {
             double up = u[p] * a[k];
@@ -178,10 +205,8 @@ static PyObject *joint_system(PyObject *self, PyObject *args) {
     for (Py_ssize_t k = 0; k < M; k++) {
         Py_ssize_t t = tgt[k], ob = obs[k];
         double e = x[3 * t] - x[3 * ob], nn = x[3 * t + 1] - x[3 * ob + 1], uu = x[3 * t + 2] - x[3 * ob + 2];
-        double h2 = e * e + nn * nn;
-        if (h2 < 1e-12) h2 = 1e-12;
-        double h = sqrt(h2), r2 = h2 + uu * uu, hr2 = h * r2;
-        double J[6] = {-nn / h2, e / h2, 0.0, -e * uu / hr2, -nn * uu / hr2, h / r2};
+        double J[6], h;
+        azel_jacobian(e, nn, uu, J, &h);
         double res0 = wrap_angle(z[2 * k] - atan2(nn, e)), res1 = z[2 * k + 1] - atan2(uu, h);
         double B[9], v[3], ck = c[k];
         for (int p = 0; p < 3; p++) {
@@ -228,14 +253,8 @@ static PyObject *own_system(PyObject *self, PyObject *args) {
     for (Py_ssize_t k = 0; k < R; k++) {
         double d[3], u[3];
         for (int q = 0; q < 3; q++) d[q] = p[q] + lev[3 * k + q] - pj[3 * k + q];
-        double h = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
-        double hh = h > 1e-9 ? h : 1e-9;
-        for (int q = 0; q < 3; q++) u[q] = d[q] / hh;
-        const double *P = Pj + 9 * k;
-        double var = sig2[k];
-        for (int q = 0; q < 3; q++)
-            var += u[q] * (P[3 * q] * u[0] + P[3 * q + 1] * u[1] + P[3 * q + 2] * u[2]);
-        double a = w[k] / var, res = z[k] - h;
+        double h = unit_of(d, u);
+        double a = w[k] / add_quad(sig2[k], Pj + 9 * k, u), res = z[k] - h;
         for (int q = 0; q < 3; q++) {
             double ua = u[q] * a;
             g[q] += ua * res;
@@ -244,10 +263,8 @@ static PyObject *own_system(PyObject *self, PyObject *args) {
     }
     for (Py_ssize_t k = 0; k < A; k++) {
         double e = pt[3 * k] - p[0], nn = pt[3 * k + 1] - p[1], uu = pt[3 * k + 2] - p[2];
-        double h2 = e * e + nn * nn;
-        if (h2 < 1e-12) h2 = 1e-12;
-        double h = sqrt(h2), r2 = h2 + uu * uu, hr2 = h * r2;
-        double J[6] = {-nn / h2, e / h2, 0.0, -e * uu / hr2, -nn * uu / hr2, h / r2};
+        double J[6], h;
+        azel_jacobian(e, nn, uu, J, &h);
         const double *P = Pt + 9 * k;
         double JP[6];  /* J P (2 x 3) */
         for (int r = 0; r < 2; r++)
@@ -329,17 +346,9 @@ static PyObject *own_meat(PyObject *self, PyObject *args) {
     for (Py_ssize_t k = 0; k < R; k++) {
         double d[3], u[3];
         for (int q = 0; q < 3; q++) d[q] = p[q] + lev[3 * k + q] - pj[3 * k + q];
-        double h = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
-        double hh = h > 1e-9 ? h : 1e-9;
-        for (int q = 0; q < 3; q++) u[q] = d[q] / hh;
-        const double *P = Pj + 9 * k, *Ptr = Pjt + 9 * k;
-        double var = sig2[k], var_t = sig2[k];
-        for (int q = 0; q < 3; q++) {
-            var += u[q] * (P[3 * q] * u[0] + P[3 * q + 1] * u[1] + P[3 * q + 2] * u[2]);
-            var_t += u[q] * (Ptr[3 * q] * u[0] + Ptr[3 * q + 1] * u[1] + Ptr[3 * q + 2] * u[2]);
-        }
-        double a = w[k] / var;
-        double c = NG ? a * a * sig2[k] : a * a * var_t;
+        unit_of(d, u);
+        double a = w[k] / add_quad(sig2[k], Pj + 9 * k, u);
+        double c = NG ? a * a * sig2[k] : a * a * add_quad(sig2[k], Pjt + 9 * k, u);
         for (int q = 0; q < 3; q++)
             for (int s2 = 0; s2 < 3; s2++) M[3 * q + s2] += c * u[q] * u[s2];
         if (NG) {
@@ -363,10 +372,8 @@ static PyObject *own_meat(PyObject *self, PyObject *args) {
     }
     for (Py_ssize_t k = 0; k < A; k++) {
         double e = pt[3 * k] - p[0], nn = pt[3 * k + 1] - p[1], uu = pt[3 * k + 2] - p[2];
-        double h2 = e * e + nn * nn;
-        if (h2 < 1e-12) h2 = 1e-12;
-        double h = sqrt(h2), r2 = h2 + uu * uu, hr2 = h * r2;
-        double J[6] = {-nn / h2, e / h2, 0.0, -e * uu / hr2, -nn * uu / hr2, h / r2};
+        double J[6], h;
+        azel_jacobian(e, nn, uu, J, &h);
         double C[4], Ct[4];
         for (int which = 0; which < 2; which++) {  /* C = J P Jᵀ + σ² I with P = Pt (which 0), Pt_true (1) */
             const double *P = (which ? Ptt : Pt) + 9 * k;
