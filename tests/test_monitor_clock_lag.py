@@ -99,3 +99,26 @@ def test_a_lost_estimate_is_asked_for_again_until_its_node_answers(mon):
         mon.check_missing(clock - 2, who)
     assert queried == [(9, 2)]  # asked once it is live, only it, and answered
     assert np.isfinite(mon.core.res.pos[4, mon.core.col[2], 0]) and not mon.suspect
+
+
+def test_a_scheduled_kill_and_a_fast_restart_are_a_dropout_and_a_rejoin(mon):
+    """A UAV killed by schedule and restarted within DROP_CONFIRM_S (a fast lockstep run plays the
+    10 s between them in a fraction of a second) was neither a dropout nor a rejoin; with the clock's
+    kill hold seen, the token's deletion is a dropout at once — in either order of the two."""
+    two, three = SimpleNamespace(topic="uav", uav=2), SimpleNamespace(topic="uav", uav=3)
+    mon.alive = {1, 2, 3, 4, 5}
+
+    def hold(u, t):
+        return M.ClockMsg(k=5, t=t, n_epochs=60, participants=[1, 2, 3, 4, 5], hold="kill", hold_uav=u).encode()
+
+    mon.handle("clock", _item(keys.clock("r1"), hold(2, 5.0)))  # the hold first, then the token goes
+    mon.on_alive(two, False)
+    mon.on_alive(two, True)  # restarted before DROP_CONFIRM_S
+    mon.on_alive(three, False)  # the token first, then the hold
+    mon.handle("clock", _item(keys.clock("r1"), hold(3, 6.0)))
+    mon.on_alive(three, True)
+    kinds = [(e["kind"], e["uav"]) for e in mon.core.events]
+    assert kinds == [("scheduled_kill", 2), ("dropout", 2), ("rejoin", 2),
+                     ("scheduled_kill", 3), ("dropout", 3), ("rejoin", 3)], kinds
+    mon.on_alive(SimpleNamespace(topic="uav", uav=4), False)  # unscheduled: waits for DROP_CONFIRM_S as before
+    assert 4 in mon.pending_drop and ("dropout", 4) not in [(e["kind"], e["uav"]) for e in mon.core.events]

@@ -164,6 +164,21 @@ class Monitor:
             finished = c.k_now >= c.K and np.isfinite(c.res.pos[c.K - 1, j, 0])
             if not c.done and not finished:
                 self.pending_drop[kk.uav] = (time.monotonic(), c.t_now)
+                self.confirm_scheduled_drops()
+
+    def confirm_scheduled_drops(self) -> None:
+        """A token gone while its UAV's scheduled kill is on (the clock's kill hold seen, no dropout
+        for it yet) is a dropout at once: the DROP_CONFIRM_S wait that tells a death from a bus
+        outage is not needed, and a fast run could restart the UAV within it (then neither the
+        dropout nor the rejoin was recorded)."""
+        c = self.core
+        for u, (_, t_sim) in list(self.pending_drop.items()):
+            kills = sum(1 for e in c.events if e["uav"] == u and e["kind"] == "scheduled_kill")
+            drops = sum(1 for e in c.events if e["uav"] == u and e["kind"] == "dropout")
+            if kills > drops and u not in self.alive and u not in self.dropped:
+                del self.pending_drop[u]
+                self.dropped.add(u)
+                c.event("dropout", u, t=t_sim)
 
     def confirm_drops(self) -> None:
         """Token deletions older than DROP_CONFIRM_S: dropouts if the bus is up, else one outage."""
@@ -249,6 +264,8 @@ class Monitor:
                 if new_epoch:
                     self.clock_k = c.k
                 self.core.on_clock(c, payload)
+                if c.hold == "kill":
+                    self.confirm_scheduled_drops()
                 if new_epoch:
                     self.release_held()
                 if new_epoch:  # participants of epoch k-2: their estimates are surely due by now
