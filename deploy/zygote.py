@@ -100,6 +100,7 @@ def preload(algo: str) -> None:
     digest once (cached: a forked UAV logs the digest of the code it has loaded)."""
     import gtsam  # noqa: F401
     import numpy  # noqa: F401
+    import numpy.ma  # noqa: F401  (numpy imports it lazily, in a node's first np.unique: ~10 ms per process)
     import pydantic  # noqa: F401
     import zenoh  # noqa: F401
 

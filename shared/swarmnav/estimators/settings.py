@@ -138,8 +138,6 @@ def validate_tuning(table: dict | None) -> dict:
     """``[estimation.graph]`` checked against :class:`EstimatorTuning`; returns the table as given
     (only the keys set, so the estimators' defaults apply to the others). Raises ValueError naming
     the first bad key: an unknown one (with the closest known key) or a value out of range."""
-    import difflib
-
     if not table:
         return {}
     try:
@@ -148,6 +146,8 @@ def validate_tuning(table: dict | None) -> dict:
         err = e.errors()[0]
         key = ".".join(str(x) for x in err["loc"]) or "?"
         if err["type"] == "extra_forbidden":
+            import difflib  # only to name the closest key (every UAV process validates its tuning)
+
             near = difflib.get_close_matches(key, list(EstimatorTuning.model_fields), n=1)
             hint = f"did you mean {near[0]!r}? " if near else ""
             raise ValueError(f"unknown tuning key {key!r}: {hint}the keys are listed in docs/settings.md") from None
