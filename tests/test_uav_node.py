@@ -44,3 +44,24 @@ def test_a_state_claiming_another_sender_is_rejected():
     item.key_expr = "swarmnav/r1/uav/1/state"  # UAV 3's frame on UAV 1's key
     n.on_state(item)
     assert n.rejects.as_dict() == {"state:wrong_uav": 1} and not n.states
+
+
+def test_newest_peer_epoch_follows_each_peers_newest_state():
+    """newest_peer_k (kept as a per-epoch count by the state pump, not a scan of the peers): the
+    newest epoch any peer has reached among those the clock has opened; a peer that moves on no
+    longer counts at its old epoch, and one ahead of the clock counts once the clock catches up."""
+    n = _node()
+    n.uav_ids = {1, 2, 3, 4}
+    n.clock_k, n.k_done = 7, 1
+    for u, k in ((1, 3), (3, 3), (4, 4)):
+        n.on_state(_state(u, k))
+    assert n.newest_peer_k() == 4 and n.newest_count == {3: 2, 4: 1}
+    n.on_state(_state(4, 9))  # UAV 4 two epochs ahead of the opened clock + 1: not counted yet
+    assert n.newest_peer_k() == 3 and n.newest_count == {3: 2, 9: 1}
+    n.on_state(_state(1, 5))
+    n.on_state(_state(1, 4))  # an older state of UAV 1 arriving late: its newest stays 5
+    assert n.newest_peer_k() == 5 and n.newest_count == {3: 1, 5: 1, 9: 1}
+    n.clock_k = 8
+    assert n.newest_peer_k() == 9
+    scan = max((v for v in n.peer_newest.values() if v <= n.clock_k + 1), default=0)
+    assert n.newest_peer_k() == scan

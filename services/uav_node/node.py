@@ -220,10 +220,10 @@ class Node:
             self.peer_newest[m.uav] = m.k
             cnt = self.newest_count
             cnt[m.k] = cnt.get(m.k, 0) + 1
-            if old:
+            if old and cnt.get(old, 0) > 1:
                 cnt[old] -= 1
-                if not cnt[old]:
-                    del cnt[old]
+            elif old:
+                cnt.pop(old, None)
         have = self.states.setdefault((m.k, m.r), {})
         have[m.uav] = m
         w = self.waiting
