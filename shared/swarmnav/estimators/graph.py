@@ -51,11 +51,8 @@ from gtsam.symbol_shorthand import B, V, X
 from . import detection as det
 from . import joint
 from ..dataset import DatasetMeta, EpochInput
-from ..models.altimeter import DEFAULT_SIGMA_M as DEFAULT_ALT_SIGMA
-from ..models.gnss import position_sigma
 from ..scenario import estimation_values
 from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState, tuned_settings
-from .factors import altitude_factor
 from .graph_links import detect_links, own_bearings, own_hood, own_ranges, rot3, round_cache, take_round0, tdoa_weights
 from .imu import InitialRest, preintegrate
 from .own_factors import DRAG_KEY, OwnFactors
@@ -109,12 +106,6 @@ class GraphEstimator(NodeEstimator):
             np.any(v) for o, tags in self.tag_levers.items() if o != uav for v in tags.values())
         self.anchors, self._uav_ids = meta.anchors(), set(meta.uav_ids())
         self.params = floored_params(node.imu, meta.earth, *t.bias_rw_floor)
-        self.gnss_extra_var = t.gnss_extra_var_m2
-        # GNSS σ × gnss_sigma_scale where the dataset says the receiver has a time-correlated error
-        # (node.gnss_correlated_sigma_m > 0) or does not say (None); a declared white-noise
-        # receiver (0) at its stated σ; a per-role override wins
-        self.gnss_scale = 1.0 if node.gnss_correlated_sigma_m == 0 else t.gnss_sigma_scale
-        self.gnss_scale = float(t.gnss_sigma_scale_by_role.get(str(node.role), self.gnss_scale))
         self._rest = InitialRest.from_settings(t, init.vel, init.vel_sigma, float(np.linalg.norm(self.params.n_gravity)))
         self.drag = t.rotor_drag and getattr(node, "airframe", None) == "multirotor"
         self.own = OwnFactors(uav, meta, t, self.uwb_sigma, self.tags, self.params, self.drag)
@@ -191,14 +182,7 @@ class GraphEstimator(NodeEstimator):
         key = X(n)
         g = gtsam.NonlinearFactorGraph()
         g.add(gtsam.CombinedImuFactor(X(n - 1), V(n - 1), key, V(n), B(n - 1), B(n), self.pim))
-        if inp.gnss_pos is not None:
-            sig = position_sigma(inp.gnss_pos_sigma, self.gnss_extra_var, self.gnss_scale)
-            g.add(gtsam.GPSFactor(key, np.asarray(inp.gnss_pos, float), gtsam.noiseModel.Diagonal.Sigmas(sig)))
-        if inp.gnss_vel is not None and inp.gnss_vel_sigma:
-            g.add(gtsam.PriorFactorVector(V(n), np.asarray(inp.gnss_vel, float),
-                                          gtsam.noiseModel.Isotropic.Sigma(3, float(inp.gnss_vel_sigma))))
-        if inp.altitude is not None:
-            g.add(altitude_factor(key, inp.altitude, inp.altitude_sigma or DEFAULT_ALT_SIGMA))
+        self.own.add_gnss_altitude(g, key, V(n), inp)
         if self._rest.update(inp):  # until the first motion, for good
             g.add(self._rest.prior(V(n)))
         v = gtsam.Values()
@@ -358,7 +342,7 @@ class GraphEstimator(NodeEstimator):
         """Re-initialise a restarted node at time ``t`` (restart.py): position from GNSS, else a
         multilateration on the peers and anchors; velocity from GNSS or the peers; attitude level
         with yaw along the velocity (a coarse alignment: roll/pitch σ 0.5°, yaw σ 10°)."""
-        pos, pos_sigma = restart_position(t, peers, inp, self.anchors, self.gnss_extra_var, self.pose.translation())
+        pos, pos_sigma = restart_position(t, peers, inp, self.anchors, self.own.gnss_extra_var, self.pose.translation())
         vel, vs, quat = restart_velocity(peers, inp, self.vel)
         self._reset(t, pos, vel, quat, pos_sigma, vs, ATT_SIGMA_RAD)
 

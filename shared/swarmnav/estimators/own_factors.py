@@ -1,5 +1,5 @@
-"""The per-UAV graph's *own* factors of an epoch besides IMU and GNSS: known-anchor ranges, passive
-range differences whose tags are all the node's own or anchors', and the rotor-drag factor.
+"""The per-UAV graph's *own* factors of an epoch besides IMU: GNSS position/velocity and altitude
+(``models/gnss.py``, ``models/altimeter.py``), known-anchor ranges, passive range differences whose tags are all the node's own or anchors', and the rotor-drag factor.
 
 Sparse ranging without GNSS (docs/miluv.md, "Third pass"): an anchor range taken at t_r inside the
 epoch is fused at the epoch time t with the anchor moved by v_pred·(t − t_r) (``anchor_time_shift``,
@@ -17,7 +17,9 @@ import gtsam
 import numpy as np
 
 from ..dataset import DatasetMeta, EpochInput
-from .factors import rotor_drag_factor, rotor_drag_prior, rotor_drag_sigma, stacked_range_factor, tdoa_factor, tdoa_row
+from ..models.altimeter import DEFAULT_SIGMA_M as DEFAULT_ALT_SIGMA
+from ..models.gnss import position_sigma
+from .factors import altitude_factor, rotor_drag_factor, rotor_drag_prior, rotor_drag_sigma, stacked_range_factor, tdoa_factor, tdoa_row
 from .imu import mean_specific_force
 
 DRAG_KEY = gtsam.symbol("m", 0)  # rotor-drag state [μ, c_x, c_y] of a multirotor (OwnFactors.add_drag)
@@ -51,6 +53,25 @@ class OwnFactors:
         self.drag, self.drag_mu0, self.drag_mu_sigma = drag, t.drag_mu_prior, t.drag_mu_prior_sigma
         self.drag_sigma_scale = t.drag_sigma_scale
         self.drag_new = drag  # the drag state is not in the smoother yet (inserted with its prior)
+        node = meta.node(uav)
+        self.gnss_extra_var = t.gnss_extra_var_m2
+        # GNSS σ × gnss_sigma_scale where the dataset says the receiver has a time-correlated error
+        # (node.gnss_correlated_sigma_m > 0) or does not say (None); a declared white-noise
+        # receiver (0) at its stated σ; a per-role override wins
+        self.gnss_scale = 1.0 if node.gnss_correlated_sigma_m == 0 else t.gnss_sigma_scale
+        self.gnss_scale = float(t.gnss_sigma_scale_by_role.get(str(node.role), self.gnss_scale))
+
+    def add_gnss_altitude(self, g, key, vel_key, inp: EpochInput):
+        """The epoch's GNSS position (ENU m, on pose ``key``) and velocity (m/s, on ``vel_key``) and
+        barometric altitude factors, where the epoch has them."""
+        if inp.gnss_pos is not None:
+            sig = position_sigma(inp.gnss_pos_sigma, self.gnss_extra_var, self.gnss_scale)
+            g.add(gtsam.GPSFactor(key, np.asarray(inp.gnss_pos, float), gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        if inp.gnss_vel is not None and inp.gnss_vel_sigma:
+            g.add(gtsam.PriorFactorVector(vel_key, np.asarray(inp.gnss_vel, float),
+                                          gtsam.noiseModel.Isotropic.Sigma(3, float(inp.gnss_vel_sigma))))
+        if inp.altitude is not None:
+            g.add(altitude_factor(key, inp.altitude, inp.altitude_sigma or DEFAULT_ALT_SIGMA))
 
     def robust(self, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
         """``base`` under the anchor kernel."""
