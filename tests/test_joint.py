@@ -9,14 +9,19 @@ from swarmnav.estimators.settings import validate_tuning
 from swarmnav.models.base import wrap_angle
 
 
-def _problem(seed: int, n: int = 7):
+def _problem(seed: int, n: int = 7, max_range_m: float | None = None):
+    """n UAVs in a 300 m box with priors, ranges between 70 % of the pairs (only those closer than
+    ``max_range_m``: a sparse neighbourhood) and five az/el observations."""
     rng = np.random.default_rng(seed)
-    truth = rng.uniform([0, 0, 100], [300, 300, 200], (n, 3))
+    side = 300.0 if max_range_m is None else 300.0 * np.sqrt(n / 7)
+    truth = rng.uniform([0, 0, 100], [side, side, 200], (n, 3))
     A = rng.normal(size=(n, 3, 3))
     cov = np.einsum("nij,nkj->nik", A, A) * 0.05 + np.eye(3) * 0.02
     mean = truth + np.einsum("nij,nj->ni", np.linalg.cholesky(cov), rng.normal(size=(n, 3)))
     ia, ib = np.triu_indices(n, 1)
     keep = rng.random(len(ia)) < 0.7
+    if max_range_m is not None:
+        keep &= np.linalg.norm(truth[ia] - truth[ib], axis=1) < max_range_m
     ia, ib = ia[keep], ib[keep]
     d = np.linalg.norm(truth[ia] - truth[ib], axis=1) + rng.normal(0, 0.1, len(ia))
     w = rng.uniform(0.2, 1.0, len(ia))
@@ -29,12 +34,14 @@ def _problem(seed: int, n: int = 7):
     return truth, mean, np.linalg.inv(cov), ia, ib, d, w, (obs, tgt, z, s2)
 
 
-@pytest.mark.parametrize("seed", [1, 2, 3])
-def test_joint_solve_is_the_map_of_its_factor_graph(seed):
-    """Against an independent solver of the same cost (scipy least_squares on whitened residuals)."""
-    truth, mean, info, ia, ib, d, w, azel = _problem(seed)
+@pytest.mark.parametrize("seed, n", [(1, 7), (2, 7), (3, 7), (4, 40), (5, 40)])
+def test_joint_solve_is_the_map_of_its_factor_graph(seed, n, monkeypatch):
+    """Against an independent solver of the same cost (scipy least_squares on whitened residuals);
+    n = 40 sparse (120 unknowns): the block-sparse path (_kernels.joint_step) alone."""
+    truth, mean, info, ia, ib, d, w, azel = _problem(seed, n, None if n < 10 else 150.0)
+    if 3 * n > joint._SMALL_SYSTEM:
+        monkeypatch.setattr(joint, "_dense_step", lambda *a: pytest.fail("the dense fallback ran"))
     obs, tgt, z, s2 = azel
-    n = len(mean)
     aw = np.linspace(0.5, 1.0, len(obs))
     Ls = np.linalg.cholesky(info)  # info = L Lᵀ: ‖Lᵀ(x − m)‖² = (x − m)ᵀ info (x − m)
 
@@ -116,6 +123,27 @@ def test_the_c_kernels_normal_equations_are_the_gauss_newton_step_of_the_cost():
     assert np.array_equal(H, H.T) or np.abs(H - H.T).max() < 1e-9 * np.abs(H).max()
 
 
+@pytest.mark.parametrize("seed, n", [(6, 25), (7, 60), (8, 8)])
+def test_the_block_sparse_step_is_the_dense_solve(seed, n):
+    """_kernels.joint_step (minimum-degree block Cholesky) = H⁻¹g of joint_system's dense H, to
+    rounding; an H that is not positive definite is refused with dx untouched."""
+    from swarmnav.estimators import _kernels
+
+    truth, mean, info, ia, ib, d, w, (obs, tgt, z, s2) = _problem(seed, n, 120.0)
+    x = mean + 0.3
+    args = [mean, info, ia.astype(np.int64), ib.astype(np.int64), d, w / 0.01, obs.astype(np.int64),
+            tgt.astype(np.int64), z, 1.0 / s2]
+    H, g = np.empty((3 * n, 3 * n)), np.empty(3 * n)
+    _kernels.joint_system(x, *args, H, g)
+    dx = np.empty((n, 3))
+    assert _kernels.joint_step(x, *args, dx) is True
+    ref = np.linalg.solve(H, g)
+    np.testing.assert_allclose(dx.ravel(), ref, rtol=0, atol=1e-11 * np.abs(ref).max())
+    args[1] = -info  # negative definite priors: refused, dx untouched
+    dx[:] = 7.0
+    assert _kernels.joint_step(x, *args, dx) is False and (dx == 7.0).all()
+
+
 def test_the_c_kernel_rejects_bad_arrays_without_touching_memory():
     from swarmnav.estimators import _kernels
 
@@ -140,6 +168,13 @@ def test_the_c_kernel_rejects_bad_arrays_without_touching_memory():
         ro = np.empty(6)
         ro.flags.writeable = False
         _kernels.joint_system(*ok[:12], ro)
+    step = list(ok[:11]) + [np.empty((2, 3))]
+    _kernels.joint_step(*step)
+    for i, arr in {3: np.array([5], np.int64), 11: np.empty((3, 3)), 0: np.zeros((2, 3), np.float32)}.items():
+        args = list(step)
+        args[i] = arr
+        with pytest.raises(ValueError):
+            _kernels.joint_step(*args)
 
 
 def test_the_c_kernels_refuse_aliased_misaligned_or_oversized_buffers(tmp_path):
@@ -167,6 +202,8 @@ def test_the_c_kernels_refuse_aliased_misaligned_or_oversized_buffers(tmp_path):
         ib = np.zeros(9, np.int64); w = np.ones(9)
         e_i, e_f = np.zeros(0, np.int64), np.zeros(0)
         refused(_kernels.joint_system, x, x, info, ia, ib, w, w, e_i, e_i, np.zeros((0, 2)), e_f, H, g)
+        dx = np.empty((1, 3)); ia2 = dx.reshape(-1).view(np.int64)  # the indices inside the output dx
+        refused(_kernels.joint_step, x, x, info, ia2, ia2, w[:3], w[:3], e_i, e_i, np.zeros((0, 2)), e_f, dx)
         raw = np.zeros(8 * 4 + 1, np.uint8)[1:].view(np.float64)  # 4 doubles at an odd address
         refused(_kernels.cho_solve, np.eye(2), raw[:2], np.empty(2))
         H2 = 2.0 * np.eye(2)

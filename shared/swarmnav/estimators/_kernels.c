@@ -1,6 +1,7 @@
 /* The estimators' C kernels: the Gauss-Newton normal equations of the cooperative solves.
 
    joint_system  the joint snapshot's (joint.py :func:`solve`), every position of a neighbourhood;
+   joint_step    its Gauss-Newton step solved block-sparse, without the dense H (joint.py);
    own_system    one node's own position against its neighbours' broadcasts (rounds.py
                  :func:`normal_equations`: the round solves, the commit, the reported solve);
    own_meat      the sandwich "meat" of those links (rounds.py :func:`link_meat`);
@@ -65,6 +66,62 @@ static void azel_jacobian(double e, double nn, double uu, double *J, double *h_o
     J[0] = -nn / h2; J[1] = e / h2; J[2] = 0.0;
     J[3] = -e * uu / hr2; J[4] = -nn * uu / hr2; J[5] = h / r2;
     *h_out = h;
+}
+
+/* The joint snapshot's range and az/el factors at x, one at a time: add(ctx, A, B, Bm, v) with the
+   factor's 3 x 3 block Bm (symmetric) and gradient part v, to be added as H_AA += Bm, H_BB += Bm,
+   H_AB -= Bm, H_BA -= Bm, g_A += v, g_B -= v (the models: see joint_system above). */
+typedef void (*factor_add_t)(void *ctx, Py_ssize_t A, Py_ssize_t Bn, const double *Bm, const double *v);
+
+static void joint_factors(const double *x, const long long *ia, const long long *ib, const double *d, const double *a,
+                          Py_ssize_t m, const long long *obs, const long long *tgt, const double *z, const double *c,
+                          Py_ssize_t M, factor_add_t add, void *ctx) {
+    for (Py_ssize_t k = 0; k < m; k++) {
+        Py_ssize_t ea = ia[k], eb = ib[k];
+        double dv[3] = {x[3 * ea] - x[3 * eb], x[3 * ea + 1] - x[3 * eb + 1], x[3 * ea + 2] - x[3 * eb + 2]};
+        double u[3], B[9], v[3];
+        double h = unit_of(dv, u);
+        double res = d[k] - h;
+        for (int p = 0; p < 3; p++) {
+            double up = u[p] * a[k];
+            v[p] = up * res;
+            for (int s = 0; s < 3; s++) B[3 * p + s] = u[s] * up;
+        }
+        add(ctx, ea, eb, B, v);
+    }
+    for (Py_ssize_t k = 0; k < M; k++) {
+        Py_ssize_t t = tgt[k], ob = obs[k];
+        double e = x[3 * t] - x[3 * ob], nn = x[3 * t + 1] - x[3 * ob + 1], uu = x[3 * t + 2] - x[3 * ob + 2];
+        double J[6], h;
+        azel_jacobian(e, nn, uu, J, &h);
+        double res0 = wrap_angle(z[2 * k] - atan2(nn, e)), res1 = z[2 * k + 1] - atan2(uu, h);
+        double B[9], v[3], ck = c[k];
+        for (int p = 0; p < 3; p++) {
+            double j0 = J[p] * ck, j1 = J[3 + p] * ck;
+            v[p] = j0 * res0 + j1 * res1;
+            for (int s = 0; s < 3; s++) B[3 * p + s] = j0 * J[s] + j1 * J[3 + s];
+        }
+        add(ctx, t, ob, B, v);
+    }
+}
+
+typedef struct { double *H, *g; Py_ssize_t N; } dense_t;
+
+static void dense_add(void *vctx, Py_ssize_t A, Py_ssize_t Bn, const double *Bm, const double *v) {
+    dense_t *ctx = vctx;
+    double *H = ctx->H, *g = ctx->g;
+    Py_ssize_t N = ctx->N;
+    for (int p = 0; p < 3; p++) {
+        g[3 * A + p] += v[p];
+        g[3 * Bn + p] -= v[p];
+        for (int s = 0; s < 3; s++) {
+            double bb = Bm[3 * p + s];
+            H[(3 * A + p) * N + 3 * A + s] += bb;
+            H[(3 * Bn + p) * N + 3 * Bn + s] += bb;
+            H[(3 * A + p) * N + 3 * Bn + s] -= bb;
+            H[(3 * Bn + p) * N + 3 * A + s] -= bb;
+        }
+    }
 }
 
 typedef struct { Py_buffer b; int held; } buf_t;
@@ -137,6 +194,33 @@ static void release_bufs(buf_t *b, int n) {
         if (b[i].held) PyBuffer_Release(&b[i].b);
 }
 
+/* The joint kernels' shared argument checks (x, prior_mean, prior_info, ia, ib, d, a, obs, tgt, z, c
+   in b[0..10]): sizes consistent with n nodes, m ranges and M az/el rows, every index a node. */
+static int joint_check(const buf_t *b, Py_ssize_t n, Py_ssize_t m, Py_ssize_t M, const char *fn) {
+    if (3 * n > MAX_UNKNOWNS) {
+        PyErr_Format(PyExc_ValueError, "%s: system too large", fn);
+        return -1;
+    }
+    if (b[0].b.len != n * 24 || b[1].b.len != n * 24 || b[2].b.len != n * 72 || b[4].b.len != m * 8 ||
+        b[5].b.len != m * 8 || b[6].b.len != m * 8 || b[8].b.len != M * 8 || b[9].b.len != M * 16 ||
+        b[10].b.len != M * 8) {
+        PyErr_Format(PyExc_ValueError, "%s: inconsistent array sizes", fn);
+        return -1;
+    }
+    const long long *ia = b[3].b.buf, *ib = b[4].b.buf, *obs = b[7].b.buf, *tgt = b[8].b.buf;
+    for (Py_ssize_t k = 0; k < m; k++)
+        if (ia[k] < 0 || ia[k] >= n || ib[k] < 0 || ib[k] >= n) {
+            PyErr_Format(PyExc_ValueError, "%s: range end out of range", fn);
+            return -1;
+        }
+    for (Py_ssize_t k = 0; k < M; k++)
+        if (obs[k] < 0 || obs[k] >= n || tgt[k] < 0 || tgt[k] >= n) {
+            PyErr_Format(PyExc_ValueError, "%s: az/el end out of range", fn);
+            return -1;
+        }
+    return 0;
+}
+
 static PyObject *joint_system(PyObject *self, PyObject *args) {
     static const char *names[13] = {"x", "prior_mean", "prior_info", "ia", "ib", "d", "a", "obs", "tgt",
                                     "z", "c", "H", "g"};
@@ -144,13 +228,8 @@ static PyObject *joint_system(PyObject *self, PyObject *args) {
     PyObject *ret = NULL;
     if (get_bufs(args, b, 13, "dddqqddqqdddd", names, 11, "joint_system") < 0) return NULL;
     Py_ssize_t n = b[0].b.len / (3 * 8), m = b[3].b.len / 8, M = b[7].b.len / 8, N = 3 * n;
-    if (N > MAX_UNKNOWNS) {
-        PyErr_SetString(PyExc_ValueError, "joint_system: system too large");
-        goto done;
-    }
-    if (b[0].b.len != n * 24 || b[1].b.len != n * 24 || b[2].b.len != n * 72 || b[4].b.len != m * 8 ||
-        b[5].b.len != m * 8 || b[6].b.len != m * 8 || b[8].b.len != M * 8 || b[9].b.len != M * 16 ||
-        b[10].b.len != M * 8 || b[11].b.len != N * N * 8 || b[12].b.len != N * 8) {
+    if (joint_check(b, n, m, M, "joint_system") < 0) goto done;
+    if (b[11].b.len != N * N * 8 || b[12].b.len != N * 8) {
         PyErr_SetString(PyExc_ValueError, "joint_system: inconsistent array sizes");
         goto done;
     }
@@ -158,16 +237,6 @@ static PyObject *joint_system(PyObject *self, PyObject *args) {
                  *z = b[9].b.buf, *c = b[10].b.buf;
     const long long *ia = b[3].b.buf, *ib = b[4].b.buf, *obs = b[7].b.buf, *tgt = b[8].b.buf;
     double *H = b[11].b.buf, *g = b[12].b.buf;
-    for (Py_ssize_t k = 0; k < m; k++)
-        if (ia[k] < 0 || ia[k] >= n || ib[k] < 0 || ib[k] >= n) {
-            PyErr_SetString(PyExc_ValueError, "joint_system: range end out of range");
-            goto done;
-        }
-    for (Py_ssize_t k = 0; k < M; k++)
-        if (obs[k] < 0 || obs[k] >= n || tgt[k] < 0 || tgt[k] >= n) {
-            PyErr_SetString(PyExc_ValueError, "joint_system: az/el end out of range");
-            goto done;
-        }
     memset(H, 0, (size_t)N * N * sizeof(double));
     for (Py_ssize_t q = 0; q < n; q++) {
         const double *L = pi + 9 * q;
@@ -177,46 +246,8 @@ static PyObject *joint_system(PyObject *self, PyObject *args) {
             for (int s = 0; s < 3; s++) H[(3 * q + p) * N + 3 * q + s] = L[3 * p + s];
         }
     }
-#define ADD_FACTOR(A, Bn, Bm, v)                                                              \
-    for (int p = 0; p < 3; p++) {                                                            \
-        g[3 * (A) + p] += (v)[p];                                                            \
-        g[3 * (Bn) + p] -= (v)[p];                                                           \
-        for (int s = 0; s < 3; s++) {                                                        \
-            double bb = (Bm)[3 * p + s];                                                     \
-            H[(3 * (A) + p) * N + 3 * (A) + s] += bb;                                        \
-            H[(3 * (Bn) + p) * N + 3 * (Bn) + s] += bb;                                      \
-            H[(3 * (A) + p) * N + 3 * (Bn) + s] -= bb;                                       \
-            H[(3 * (Bn) + p) * N + 3 * (A) + s] -= bb;                                       \
-        }                                                                                    \
-    }
-    for (Py_ssize_t k = 0; k < m; k++) {
-        Py_ssize_t ea = ia[k], eb = ib[k];
-        double dv[3] = {x[3 * ea] - x[3 * eb], x[3 * ea + 1] - x[3 * eb + 1], x[3 * ea + 2] - x[3 * eb + 2]};
-        double u[3], B[9], v[3];
-        double h = unit_of(dv, u);
-        double res = d[k] - h;
-        for (int p = 0; p < 3; p++) {
-            double up = u[p] * a[k];
-            v[p] = up * res;
-            for (int s = 0; s < 3; s++) B[3 * p + s] = u[s] * up;
-        }
-        ADD_FACTOR(ea, eb, B, v)
-    }
-    for (Py_ssize_t k = 0; k < M; k++) {
-        Py_ssize_t t = tgt[k], ob = obs[k];
-        double e = x[3 * t] - x[3 * ob], nn = x[3 * t + 1] - x[3 * ob + 1], uu = x[3 * t + 2] - x[3 * ob + 2];
-        double J[6], h;
-        azel_jacobian(e, nn, uu, J, &h);
-        double res0 = wrap_angle(z[2 * k] - atan2(nn, e)), res1 = z[2 * k + 1] - atan2(uu, h);
-        double B[9], v[3], ck = c[k];
-        for (int p = 0; p < 3; p++) {
-            double j0 = J[p] * ck, j1 = J[3 + p] * ck;
-            v[p] = j0 * res0 + j1 * res1;
-            for (int s = 0; s < 3; s++) B[3 * p + s] = j0 * J[s] + j1 * J[3 + s];
-        }
-        ADD_FACTOR(t, ob, B, v)
-    }
-#undef ADD_FACTOR
+    dense_t ctx = {H, g, N};
+    joint_factors(x, ia, ib, d, a, m, obs, tgt, z, c, M, dense_add, &ctx);
     ret = Py_None;
     Py_INCREF(ret);
 done:
@@ -503,11 +534,258 @@ done:
     return ret;
 }
 
+/* joint_step(x, prior_mean, prior_info, ia, ib, d, a, obs, tgt, z, c, dx) -> bool: the joint
+   snapshot's Gauss-Newton step dx (n, 3) = H⁻¹g of the system joint_system builds at x, solved by a
+   block-sparse Cholesky factorisation that never forms the dense 3n x 3n H.
+
+   A neighbourhood's system is sparse at the level of 3 x 3 node blocks: node i and j are coupled
+   only by a range or an az/el observation between them (median on configs/scale.toml: 52 nodes, 13
+   at most left coupled to a node when it is eliminated; ~12x fewer multiply-adds than a dense
+   factorisation). Symbolic phase: the node coupling pattern from the factor lists, an elimination
+   order by minimum degree (the node with the fewest uneliminated neighbours next, ties by index:
+   deterministic), the fill it creates, one 3 x 3 slot per coupled node pair. Numeric phase: the
+   blocks filled as joint_system fills H (same factor models, joint_factors), then a right-looking
+   block Cholesky L Lᵀ = H in that order and the two block triangular solves. Exact: the same H⁻¹g
+   as a dense solve up to rounding. False (dx untouched) if H is not numerically positive definite
+   (the caller falls back to a dense LU) or n > JOINT_STEP_MAX_NODES (its O(n²) bookkeeping). */
+#define JOINT_STEP_MAX_NODES 4096
+
+typedef struct {
+    Py_ssize_t n;
+    int *slot;    /* n*n: index of the pair's 3 x 3 block in pool (-1: uncoupled); (i, i): the diagonal */
+    double *pool; /* blocks: the diagonal one full and symmetric; an off-diagonal pair {i, j} holds
+                     the rows of max(i, j) and the columns of min(i, j) until one of them is
+                     eliminated, then L_ik (rows i, columns k of the eliminated k) */
+    double *g;    /* 3n right-hand side, then the forward solve's y */
+} blocks_t;
+
+static void sparse_add(void *vctx, Py_ssize_t A, Py_ssize_t Bn, const double *Bm, const double *v) {
+    blocks_t *ctx = vctx;
+    Py_ssize_t n = ctx->n;
+    double *DA = ctx->pool + 9 * (Py_ssize_t)ctx->slot[A * n + A], *DB = ctx->pool + 9 * (Py_ssize_t)ctx->slot[Bn * n + Bn];
+    double *O = ctx->pool + 9 * (Py_ssize_t)ctx->slot[A * n + Bn];
+    for (int p = 0; p < 3; p++) {
+        ctx->g[3 * A + p] += v[p];
+        ctx->g[3 * Bn + p] -= v[p];
+        for (int s = 0; s < 3; s++) {
+            double bb = Bm[3 * p + s];
+            DA[3 * p + s] += bb;
+            DB[3 * p + s] += bb;
+            O[3 * p + s] -= bb; /* Bm symmetric: the same in either orientation */
+        }
+    }
+}
+
+/* 3 x 3 lower Cholesky factor of the symmetric D; 0 if not positive definite */
+static int chol3(const double *D, double *L) {
+    double l00 = D[0];
+    if (!(l00 > 0.0) || !isfinite(l00)) return 0;
+    l00 = sqrt(l00);
+    double l10 = D[3] / l00, l20 = D[6] / l00;
+    double l11 = D[4] - l10 * l10;
+    if (!(l11 > 0.0) || !isfinite(l11)) return 0;
+    l11 = sqrt(l11);
+    double l21 = (D[7] - l20 * l10) / l11;
+    double l22 = D[8] - l20 * l20 - l21 * l21;
+    if (!(l22 > 0.0) || !isfinite(l22)) return 0;
+    l22 = sqrt(l22);
+    L[0] = l00; L[1] = 0.0; L[2] = 0.0;
+    L[3] = l10; L[4] = l11; L[5] = 0.0;
+    L[6] = l20; L[7] = l21; L[8] = l22;
+    return 1;
+}
+
+/* y = L⁻¹ b and y = L⁻ᵀ b for a 3 x 3 lower triangular L (y may be b) */
+static void lsolve3(const double *L, const double *b, double *y) {
+    double y0 = b[0] / L[0];
+    double y1 = (b[1] - L[3] * y0) / L[4];
+    double y2 = (b[2] - L[6] * y0 - L[7] * y1) / L[8];
+    y[0] = y0; y[1] = y1; y[2] = y2;
+}
+
+static void ltsolve3(const double *L, const double *b, double *y) {
+    double y2 = b[2] / L[8];
+    double y1 = (b[1] - L[7] * y2) / L[4];
+    double y0 = (b[0] - L[3] * y1 - L[6] * y2) / L[0];
+    y[0] = y0; y[1] = y1; y[2] = y2;
+}
+
+/* The symbolic phase: elimination order (order[n]), per eliminated node its uneliminated neighbours
+   then (R, rstart[n + 1]) and a slot per coupled pair; returns the number of blocks. nz: n*n bytes. */
+static Py_ssize_t joint_symbolic(Py_ssize_t n, const long long *ia, const long long *ib, Py_ssize_t m,
+                                 const long long *obs, const long long *tgt, Py_ssize_t M, unsigned char *nz,
+                                 int *deg, unsigned char *done, int *order, int *R, Py_ssize_t *rstart, int *slot) {
+    memset(nz, 0, (size_t)(n * n));
+    memset(deg, 0, (size_t)n * sizeof(int));
+    memset(done, 0, (size_t)n);
+    for (Py_ssize_t i = 0; i < n * n; i++) slot[i] = -1;
+    Py_ssize_t nb = 0;
+    for (Py_ssize_t i = 0; i < n; i++) slot[i * n + i] = (int)nb++;
+    for (Py_ssize_t k = 0; k < m + M; k++) {
+        Py_ssize_t A = k < m ? ia[k] : obs[k - m], B = k < m ? ib[k] : tgt[k - m];
+        if (A == B || nz[A * n + B]) continue;
+        nz[A * n + B] = nz[B * n + A] = 1;
+        deg[A]++; deg[B]++;
+        slot[A * n + B] = slot[B * n + A] = (int)nb++;
+    }
+    Py_ssize_t r = 0;
+    for (Py_ssize_t s = 0; s < n; s++) {
+        Py_ssize_t k = -1;
+        for (Py_ssize_t i = 0; i < n; i++)
+            if (!done[i] && (k < 0 || deg[i] < deg[k])) k = i;
+        order[s] = (int)k;
+        done[k] = 1;
+        rstart[s] = r;
+        for (Py_ssize_t i = 0; i < n; i++)
+            if (!done[i] && nz[k * n + i]) R[r++] = (int)i;
+        for (Py_ssize_t p = rstart[s]; p < r; p++) {
+            Py_ssize_t i = R[p];
+            deg[i]--; /* k leaves */
+            for (Py_ssize_t q = rstart[s]; q < p; q++) {
+                Py_ssize_t j = R[q];
+                if (!nz[i * n + j]) { /* fill */
+                    nz[i * n + j] = nz[j * n + i] = 1;
+                    deg[i]++; deg[j]++;
+                    slot[i * n + j] = slot[j * n + i] = (int)nb++;
+                }
+            }
+        }
+    }
+    rstart[n] = r;
+    return nb;
+}
+
+static int joint_numeric(Py_ssize_t n, const int *order, const int *R, const Py_ssize_t *rstart, const int *slot,
+                         double *pool, double *g, double *dx) {
+    double Lkk[9];
+    for (Py_ssize_t s = 0; s < n; s++) {
+        Py_ssize_t k = order[s];
+        double *D = pool + 9 * (Py_ssize_t)slot[k * n + k];
+        if (!chol3(D, Lkk)) return 0;
+        memcpy(D, Lkk, sizeof Lkk);
+        for (Py_ssize_t p = rstart[s]; p < rstart[s + 1]; p++) { /* L_ik = W_ik L_kk⁻ᵀ, rows i */
+            Py_ssize_t i = R[p];
+            double *O = pool + 9 * (Py_ssize_t)slot[i * n + k], W[9];
+            for (int a = 0; a < 3; a++)
+                for (int b2 = 0; b2 < 3; b2++) W[3 * a + b2] = i > k ? O[3 * a + b2] : O[3 * b2 + a];
+            for (int a = 0; a < 3; a++) lsolve3(Lkk, W + 3 * a, O + 3 * a);
+        }
+        for (Py_ssize_t p = rstart[s]; p < rstart[s + 1]; p++) { /* W_ij -= L_ik L_jkᵀ, i >= j */
+            Py_ssize_t i = R[p];
+            double li[9], lj[9], u[9]; /* local copies: the blocks share the pool, so the compiler would reload */
+            memcpy(li, pool + 9 * (Py_ssize_t)slot[i * n + k], sizeof li);
+            const int *srow = slot + i * n;
+            for (Py_ssize_t q = rstart[s]; q < rstart[s + 1]; q++) {
+                Py_ssize_t j = R[q];
+                if (j > i) continue;
+                memcpy(lj, pool + 9 * (Py_ssize_t)slot[j * n + k], sizeof lj);
+                for (int a = 0; a < 3; a++)
+                    for (int b2 = 0; b2 < 3; b2++)
+                        u[3 * a + b2] = li[3 * a] * lj[3 * b2] + li[3 * a + 1] * lj[3 * b2 + 1] + li[3 * a + 2] * lj[3 * b2 + 2];
+                double *T = pool + 9 * (Py_ssize_t)srow[j];
+                for (int e = 0; e < 9; e++) T[e] -= u[e];
+            }
+        }
+        lsolve3(Lkk, g + 3 * k, g + 3 * k); /* forward: y_k, then b_i -= L_ik y_k */
+        for (Py_ssize_t p = rstart[s]; p < rstart[s + 1]; p++) {
+            Py_ssize_t i = R[p];
+            const double *Li = pool + 9 * (Py_ssize_t)slot[i * n + k], *y = g + 3 * k;
+            for (int a = 0; a < 3; a++) g[3 * i + a] -= Li[3 * a] * y[0] + Li[3 * a + 1] * y[1] + Li[3 * a + 2] * y[2];
+        }
+    }
+    for (Py_ssize_t s = n - 1; s >= 0; s--) { /* back: x_k = L_kk⁻ᵀ (y_k - Σ L_ikᵀ x_i) */
+        Py_ssize_t k = order[s];
+        double t[3] = {g[3 * k], g[3 * k + 1], g[3 * k + 2]};
+        for (Py_ssize_t p = rstart[s]; p < rstart[s + 1]; p++) {
+            Py_ssize_t i = R[p];
+            const double *Li = pool + 9 * (Py_ssize_t)slot[i * n + k], *xi = dx + 3 * i;
+            for (int a = 0; a < 3; a++) t[a] -= Li[a] * xi[0] + Li[3 + a] * xi[1] + Li[6 + a] * xi[2];
+        }
+        ltsolve3(pool + 9 * (Py_ssize_t)slot[k * n + k], t, dx + 3 * k);
+    }
+    for (Py_ssize_t i = 0; i < 3 * n; i++)
+        if (!isfinite(dx[i])) return 0;
+    return 1;
+}
+
+static PyObject *joint_step(PyObject *self, PyObject *args) {
+    static const char *names[12] = {"x", "prior_mean", "prior_info", "ia", "ib", "d", "a", "obs", "tgt",
+                                    "z", "c", "dx"};
+    buf_t b[12];
+    PyObject *ret = NULL;
+    void *mem = NULL;
+    if (get_bufs(args, b, 12, "dddqqddqqddd", names, 11, "joint_step") < 0) return NULL;
+    Py_ssize_t n = b[0].b.len / (3 * 8), m = b[3].b.len / 8, M = b[7].b.len / 8;
+    if (joint_check(b, n, m, M, "joint_step") < 0 || b[11].b.len != n * 24) {
+        if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "joint_step: inconsistent array sizes");
+        goto done;
+    }
+    if (n > JOINT_STEP_MAX_NODES) {
+        ret = Py_False;
+        Py_INCREF(ret);
+        goto done;
+    }
+    const double *x = b[0].b.buf, *pm = b[1].b.buf, *pi = b[2].b.buf, *d = b[5].b.buf, *a = b[6].b.buf,
+                 *z = b[9].b.buf, *c = b[10].b.buf;
+    const long long *ia = b[3].b.buf, *ib = b[4].b.buf, *obs = b[7].b.buf, *tgt = b[8].b.buf;
+    double *dx = b[11].b.buf;
+    /* one allocation: slot (n² int), R (n² int), order, deg (n int), rstart (n+1), nz (n²), done (n), g (3n),
+       then the pool (its size known after the symbolic phase) */
+    size_t nn = (size_t)(n * n);
+    size_t head = nn * sizeof(int) * 2 + (size_t)(2 * n) * sizeof(int) + (size_t)(n + 1) * sizeof(Py_ssize_t);
+    head = (head + 7) & ~(size_t)7;
+    size_t bytes_nz = (nn + (size_t)n + 7) & ~(size_t)7;
+    mem = PyMem_Malloc(head + bytes_nz + (size_t)(3 * n) * sizeof(double) + 1);
+    if (mem == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    int *slot = mem, *R = slot + nn, *order = R + nn, *deg = order + n;
+    Py_ssize_t *rstart = (Py_ssize_t *)((char *)mem + nn * sizeof(int) * 2 + (size_t)(2 * n) * sizeof(int));
+    unsigned char *nz = (unsigned char *)mem + head, *done_ = nz + nn;
+    double *g = (double *)((char *)mem + head + bytes_nz);
+    Py_ssize_t nb = joint_symbolic(n, ia, ib, m, obs, tgt, M, nz, deg, done_, order, R, rstart, slot);
+    double *pool = PyMem_Calloc((size_t)nb * 9 + 1, sizeof(double));
+    if (pool == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    for (Py_ssize_t q = 0; q < n; q++) { /* priors: H_qq = Λ_q, g_q = Λ_q (μ_q - x_q) */
+        const double *L = pi + 9 * q;
+        double r[3] = {pm[3 * q] - x[3 * q], pm[3 * q + 1] - x[3 * q + 1], pm[3 * q + 2] - x[3 * q + 2]};
+        double *D = pool + 9 * (Py_ssize_t)slot[q * n + q];
+        for (int p = 0; p < 3; p++) {
+            g[3 * q + p] = L[3 * p] * r[0] + L[3 * p + 1] * r[1] + L[3 * p + 2] * r[2];
+            for (int s = 0; s < 3; s++) D[3 * p + s] = L[3 * p + s];
+        }
+    }
+    blocks_t ctx = {n, slot, pool, g};
+    joint_factors(x, ia, ib, d, a, m, obs, tgt, z, c, M, sparse_add, &ctx);
+    double *out = PyMem_Malloc((size_t)(3 * n + 1) * sizeof(double));
+    int ok = out != NULL && joint_numeric(n, order, R, rstart, slot, pool, g, out);
+    if (ok) memcpy(dx, out, (size_t)(3 * n) * sizeof(double));
+    PyMem_Free(out);
+    PyMem_Free(pool);
+    if (out == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    ret = PyBool_FromLong(ok);
+done:
+    PyMem_Free(mem);
+    release_bufs(b, 12);
+    return ret;
+}
+
 static PyMethodDef methods[] = {
     {"joint_system", joint_system, METH_VARARGS,
      "joint_system(x, prior_mean, prior_info, ia, ib, d, a, obs, tgt, z, c, H, g): fill H (3n, 3n) and g (3n,) "
      "of the joint snapshot's Gauss-Newton step at x (n, 3); a = range weight / sigma^2 (m,), c = az/el "
      "weight / sigma^2 (M,). float64 / int64, C-contiguous."},
+    {"joint_step", joint_step, METH_VARARGS,
+     "joint_step(x, prior_mean, prior_info, ia, ib, d, a, obs, tgt, z, c, dx) -> bool: dx (n, 3) = H^-1 g of the "
+     "joint snapshot's Gauss-Newton step at x by a block-sparse Cholesky (minimum-degree order); False (dx "
+     "untouched) if H is not numerically positive definite. float64 / int64, C-contiguous."},
     {"cho_solve", cho_solve, METH_VARARGS,
      "cho_solve(L, b, x): x = (L L^T)^-1 b, L lower triangular (n, n), b and x (n,). float64, C-contiguous."},
     {"spd_solve", spd_solve, METH_VARARGS,
