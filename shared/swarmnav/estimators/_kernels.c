@@ -562,6 +562,7 @@ typedef struct {
 static void sparse_add(void *vctx, Py_ssize_t A, Py_ssize_t Bn, const double *Bm, const double *v) {
     blocks_t *ctx = vctx;
     Py_ssize_t n = ctx->n;
+    if (A == Bn) return; /* a factor between a node and itself: H_AA += 2B - 2B, g_A += v - v (as dense) */
     double *DA = ctx->pool + 9 * (Py_ssize_t)ctx->slot[A * n + A], *DB = ctx->pool + 9 * (Py_ssize_t)ctx->slot[Bn * n + Bn];
     double *O = ctx->pool + 9 * (Py_ssize_t)ctx->slot[A * n + Bn];
     for (int p = 0; p < 3; p++) {
