@@ -145,7 +145,25 @@ def inproc_one(n: int, dur: float, profile: str | None = None) -> dict:
         "pos_err_rms_m": float(np.sqrt(np.nanmean(np.sum((res.pos - _truth(ds).pos) ** 2, axis=-1)))),
         "load1_after": load1(),
     })
+    if profile is None and (os.cpu_count() or 1) > 1:
+        out.update(_with_workers(ds, settings, res, dur))
     return out
+
+
+def _with_workers(ds, settings: dict, res, dur: float, workers: int = 2) -> dict:
+    """The same run with its UAVs spread over ``workers`` forked processes (`swarmnav evaluate
+    --jobs 2` with a single run): its wall, real-time factor and whether its estimates are res's."""
+    import numpy as np
+
+    from services.runtime.node_workers import worker_groups
+    from swarmnav.evaluation import run_algorithm
+
+    t0 = time.perf_counter()
+    r2 = run_algorithm(ds, ALGO, SEED, settings, None, time.perf_counter, worker_groups(workers))
+    wall = time.perf_counter() - t0
+    same = all(np.array_equal(getattr(res, f), getattr(r2, f), equal_nan=True) for f in ("pos", "pos_cov", "vel"))
+    return {"workers": workers, "workers_wall_s": wall, "workers_realtime_factor": dur / wall,
+            "workers_identical": bool(same), "workers_load1_after": load1()}
 
 
 def _truth(ds):
@@ -390,6 +408,10 @@ def write_plot(res: dict, path: Path) -> None:
         ax[0].grid(True, which="both", alpha=0.3)
         ax[0].legend(fontsize=7)
         ax[1].plot(n, [r["realtime_factor"] for r in ok], "o-", label="in-process estimation")
+        ww = [r for r in ok if r.get("workers_realtime_factor")]
+        if ww:
+            ax[1].plot([r["n"] for r in ww], [r["workers_realtime_factor"] for r in ww], "^--",
+                       label="in-process, UAVs over 2 worker processes")
     dd = [d for d in res["dist"] if d.get("dist_command_rtf")]
     if dd:
         ax[1].plot([d["n"] for d in dd], [d["dist_command_rtf"] for d in dd], "s-", label="distributed (whole launch)")
@@ -442,19 +464,24 @@ def _inproc_md(res: dict) -> list[str]:
          "One fresh process per size: simulate, then atvfg over every epoch on the in-memory bus (`swarmnav evaluate`'s "
          "path). *step* = the estimator's own time per UAV-epoch (all rounds); *wall/UAV-epoch* = median epoch wall ÷ N "
          "(estimator + bus + epoch slicing + protocol); *outside* = the part of it outside the estimator. Epoch 1 "
-         "(bootstrap) left out of the per-epoch figures.", "",
+         "(bootstrap) left out of the per-epoch figures. *real-time ×* = scenario s ÷ the run's wall (node set-up and "
+         "epoch 1 included); *2 workers* = the same run right after with its UAVs spread over two forked worker "
+         "processes (`swarmnav evaluate --jobs 2` with one run; services/runtime/node_workers.py), *same* = its "
+         "estimates bit-identical to the one-process run's.", "",
          "| N | scenario s | links/UAV | step p50 ms | step p99 ms | wall/UAV-epoch ms | CPU/UAV-epoch ms | outside ms | "
-         "epoch wall ms | real-time × | rounds | simulate s | peak RSS MB | load1 before→after |",
-         "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+         "epoch wall ms | real-time × | 2 workers: real-time × | same | rounds | simulate s | peak RSS MB | "
+         "load1 before→after |",
+         "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---|"]
     for r in sorted(res["inproc"], key=lambda r: r["n"]):
         if "error" in r:
-            L.append(f"| {r['n']} | {r['duration_s']:g} | — | — | — | — | — | — | — | — | — | — | — | failed: {r['error']} "
+            L.append(f"| {r['n']} | {r['duration_s']:g} | — | — | — | — | — | — | — | — | — | — | — | — | — | failed: {r['error']} "
                      f"(load {r.get('load1_after')}) |")
             continue
         L.append(f"| {r['n']} | {r['duration_s']:g} | {r['links_per_uav_epoch']:.1f} | {r['step_ms_p50']:.2f} | "
                  f"{r['step_ms_p99']:.2f} | {r['wall_per_uav_epoch_ms']:.2f} | {r['cpu_per_uav_epoch_ms']:.2f} | "
                  f"{r['outside_estimator_per_uav_epoch_ms']:.2f} | "
-                 f"{r['epoch_wall_ms_p50']:.0f} | {r['realtime_factor']:.2f} | {r['rounds_mean']:.1f} | {r['simulate_s']:.1f} | "
+                 f"{r['epoch_wall_ms_p50']:.0f} | {r['realtime_factor']:.2f} | {_f(r.get('workers_realtime_factor'))} | "
+                 f"{ {True: 'yes', False: 'NO'}.get(r.get('workers_identical'), '—')} | {r['rounds_mean']:.1f} | {r['simulate_s']:.1f} | "
                  f"{r['peak_rss_mb']:.0f} | {r['load1_before']}→{r['load1_after']} |")
     return L
 
@@ -670,7 +697,9 @@ def _bench_inproc(res: dict, sizes, out: Path, left, save, quick: bool) -> None:
         print(f"[bench]   -> " + (f"failed: {r['error']}" if "error" in r else
                                  f"step p50 {r['step_ms_p50']:.2f} ms p99 {r['step_ms_p99']:.2f} ms, wall/UAV-epoch "
                                  f"{r['wall_per_uav_epoch_ms']:.2f} ms, CPU/UAV-epoch {r['cpu_per_uav_epoch_ms']:.2f} ms, "
-                                 f"{r['realtime_factor']:.3f}x real time, peak RSS {r['peak_rss_mb']:.0f} MB, "
+                                 f"{r['realtime_factor']:.3f}x real time (2 workers: "
+                                 f"{_f(r.get('workers_realtime_factor'), '{:.3f}')}x, same estimates: {r.get('workers_identical')}), "
+                                 f"peak RSS {r['peak_rss_mb']:.0f} MB, "
                                  f"load1 {r['load1_after']}"), flush=True)
         save()
 

@@ -5,7 +5,8 @@ Thin adapter: datasets (simulated per seed, or one directory as-is) -> swarmnav.
 traj/<algo>/uav<id>.tum (+ traj/truth), evaluate.rrd, evaluate.log.
 
 Algorithm × seed runs are spread over ``--jobs`` worker processes (fork; OMP/BLAS limited to one
-thread each). Estimation is identical to the distributed run: same ``initial_states(ds, seed)``,
+thread each); a single run of a per-UAV algorithm spreads its UAVs over them instead
+(``services/runtime/node_workers.py``, bit-identical estimates). Estimation is identical to the distributed run: same ``initial_states(ds, seed)``,
 the same settings dict (``services.settings``: the [estimation] table and the trained Δl), UAVs in sorted order.
 With ``--dataset`` the seed only drives the initial-state draw; it defaults to the dataset's seed.
 Multi-seed runs pool every metric over the seeds; figures, TUM files at ``traj/<algo>/`` and the
@@ -41,6 +42,8 @@ examples:
   swarmnav evaluate --config configs/paper.toml --algos atvfg,fg,fkf,ins,central --seeds 1-3
   swarmnav evaluate --config configs/paper.toml --seeds report --jobs 2         # the Monte-Carlo headline
   swarmnav evaluate --dataset runs/miluv-dataset --algos atvfg,fg,central --seeds 0
+  swarmnav evaluate --config configs/scale.toml --set swarm.n_uavs=1000 --set scenario.duration_s=10 \
+      --algos atvfg --seeds 1 --jobs 2                                         # one run: its UAVs over 2 workers
 """
 ALL_ALGOS = "atvfg,fg,fkf,ins,central"
 
@@ -103,7 +106,8 @@ def add_arguments(p):
                    help="override a config field before validation (repeatable), e.g. --set swarm.n_uavs=100 "
                         "--set scenario.duration_s=60 (configs/scale.toml is made for this)")
     p.add_argument("--out", default="runs/evaluate", help="output directory (default runs/evaluate)")
-    p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes (default 2)")
+    p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes (default 2): algorithm x seed runs side by side, or, for a single run, "
+                   "its UAVs")
     p.add_argument("--no-rrd", action="store_true", help="skip the Rerun recording")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -256,21 +260,25 @@ def _run_tasks(tasks, settings: dict, jobs: int, ctx, n_epochs: int, quiet: bool
 
     if jobs == 1 or len(tasks) == 1:
         _limit_threads()  # numpy may have been imported before OPENBLAS_NUM_THREADS was set
-        _run_serial(tasks, settings, n_epochs, quiet, handle)
+        # one run and several jobs: its UAVs spread over the workers (node_workers.py; same numbers)
+        _run_serial(tasks, settings, n_epochs, quiet, handle, jobs if len(tasks) == 1 else 1)
     else:
         _run_pool(tasks, jobs, ctx, n_epochs, quiet, handle)
     return results, failures
 
 
-def _run_serial(tasks, settings: dict, n_epochs: int, quiet: bool, handle) -> None:
+def _run_serial(tasks, settings: dict, n_epochs: int, quiet: bool, handle, node_workers: int = 1) -> None:
     from swarmnav.errors import describe_estimator_failure
     from swarmnav.evaluation import run_algorithm
     from tqdm import tqdm
 
+    from ..runtime.node_workers import worker_groups
+
+    groups = worker_groups(node_workers) if node_workers > 1 else None
     for tid, a, s in tasks:
         bar = tqdm(total=n_epochs, desc=f"{a:>7} seed {s}", disable=quiet, leave=True)
         try:
-            res = run_algorithm(_DATASETS[s], a, s, settings, lambda k, KK: bar.update(1), time.perf_counter)
+            res = run_algorithm(_DATASETS[s], a, s, settings, lambda k, KK: bar.update(1), time.perf_counter, groups)
             handle(tid, res, None)
         except Exception as e:  # noqa: BLE001
             handle(tid, None, describe_estimator_failure(a, s, e) + "\n" + traceback.format_exc())

@@ -1,7 +1,7 @@
 """In-process evaluation: run one algorithm over a Dataset and collect per-epoch estimates as arrays.
 
 Pure (no files, no Rerun, no Zenoh). Per-UAV algorithms are driven by the one epoch protocol of
-:mod:`swarmnav.protocol` over its in-memory transport (:func:`run_epoch_in_process`), with the
+:mod:`swarmnav.protocol` over its in-memory transport (:class:`NodeGroup`, :func:`run_node_epoch`), with the
 same initial states (:func:`swarmnav.initial.initial_states` with the run seed), the same settings
 and UAVs in sorted id order as the Zenoh deployment, so both transports give the same numbers.
 The central oracle (a :class:`SwarmEstimator`) is stepped once per epoch with the range labels.
@@ -23,7 +23,7 @@ from .estimators import registry
 from .estimators.base import NodeEstimate
 from .geometry import from_rotation, to_rotation
 from .initial import initial_states
-from .protocol import node_epoch, run_epoch_in_process
+from .protocol import node_epoch, step_round
 from .scenario import estimation_values
 
 LINK_DTYPE = np.dtype([("k", np.int32), ("observer", np.int32), ("other", np.int32), ("cls", np.int8),
@@ -120,12 +120,68 @@ def _store(res: RunResult, i: int, j: int, e: NodeEstimate, links: list) -> None
         links.append((k, e.uav, int(li.other), int(li.cls), float(li.residual_m), float(li.weight)))
 
 
+class NodeGroup:
+    """Some (or all) of a run's per-UAV estimators, driven round by round over the in-memory bus:
+    ``submit("start", k)`` builds their epoch-k generators and ``result()`` then returns their
+    round-0 states; ``submit("step", snapshot)`` (the round's states of every live node of the run)
+    and ``result()`` return (their next states, the estimates of those whose epoch ended). Two-phase,
+    so that groups in other processes (services/runtime/node_workers.py) compute side by side."""
+
+    def __init__(self, ds: Dataset, algo: str, settings: dict, inits: dict, uavs, clock: Callable[[], float] | None):
+        nmeta = node_view(ds.meta)  # what a node of the deployment gets: no fault/outage/kill schedule
+        self.slicer = EpochSlicer(ds)
+        self.nodes = {u: registry.make_node(algo, u, nmeta, settings, inits[u]) for u in sorted(uavs)}
+        est = estimation_values(settings)
+        self.rounds, self.tol, self.clock = est.rounds, est.convergence_m, clock
+        self.active: dict = {}
+        self._out = None
+
+    def submit(self, command: str, arg) -> None:
+        if command == "start":
+            self.active = {u: node_epoch(n, self.slicer.epoch(arg, u), self.rounds, self.tol, self.clock)
+                           for u, n in self.nodes.items()}
+            self._out = {u: next(g) for u, g in self.active.items()}
+        elif command == "step":
+            self._out = step_round(self.active, arg)
+        else:
+            raise ValueError(f"NodeGroup: unknown command {command!r}")
+
+    def result(self):
+        out, self._out = self._out, None
+        return out
+
+
+def run_node_epoch(groups: list, k: int) -> dict[int, NodeEstimate]:
+    """Epoch k of every node of ``groups`` (:class:`NodeGroup` or alike) in lock-step rounds: each
+    round every group gets the round's states of every live node in id order (a broadcast bus);
+    the same numbers for any split of the nodes into groups."""
+    for g in groups:
+        g.submit("start", k)
+    states: dict = {}
+    for g in groups:
+        states.update(g.result())
+    results: dict[int, NodeEstimate] = {}
+    while states:
+        snapshot = dict(sorted(states.items()))
+        for g in groups:
+            g.submit("step", snapshot)
+        states = {}
+        for g in groups:
+            new, done = g.result()
+            states.update(new)
+            results.update(done)
+    return results
+
+
 def run_algorithm(ds: Dataset, algo: str, seed: int, settings: dict,
                   progress: Callable[[int, int], None] | None = None,
-                  clock: Callable[[], float] | None = None) -> RunResult:
+                  clock: Callable[[], float] | None = None,
+                  node_groups: Callable[..., list] | None = None) -> RunResult:
     """Run ``algo`` over every epoch of ``ds``; ``progress(k, K)`` is called after each epoch.
     ``clock`` (seconds, e.g. ``time.perf_counter``) times the steps and the run (``step_ms``,
-    ``wall_s``); without one they are 0: the core reads no clock."""
+    ``wall_s``); without one they are 0: the core reads no clock. ``node_groups(ds, algo,
+    settings, inits, uavs, clock)``: how a per-UAV algorithm's nodes are split into groups (e.g.
+    worker processes, services/runtime/node_workers.py); default one :class:`NodeGroup` of all."""
     tick = clock or (lambda: 0.0)
     meta = ds.meta
     slicer = EpochSlicer(ds)
@@ -135,8 +191,6 @@ def run_algorithm(ds: Dataset, algo: str, seed: int, settings: dict,
     res = RunResult.empty(algo, seed, uavs, t)
     inits = initial_states(ds, seed)
     links: list[tuple] = []
-    est = estimation_values(settings)
-    rounds, tol = est.rounds, est.convergence_m
     t_start = tick()
     if registry.kind(algo) == "swarm":
         est = registry.make_swarm(algo, meta, settings, inits)
@@ -156,19 +210,24 @@ def run_algorithm(ds: Dataset, algo: str, seed: int, settings: dict,
             if progress:
                 progress(k, K)
     else:
-        # the meta a node of the deployment gets from the sensor-sim: no fault/outage/kill schedule
-        nmeta = node_view(meta)
-        nodes = {u: registry.make_node(algo, u, nmeta, settings, inits[u]) for u in uavs}
-        for k in range(1, K + 1):
-            gens = {u: node_epoch(nodes[u], slicer.epoch(k, u), rounds, tol, clock) for u in uavs}
-            out = run_epoch_in_process(gens)
-            for j, u in enumerate(uavs):
-                _store(res, k - 1, j, out[u], links)
-            if progress:
-                progress(k, K)
+        groups = (node_groups or _one_group)(ds, algo, settings, inits, uavs, clock)
+        try:
+            for k in range(1, K + 1):
+                out = run_node_epoch(groups, k)
+                for j, u in enumerate(uavs):
+                    _store(res, k - 1, j, out[u], links)
+                if progress:
+                    progress(k, K)
+        finally:
+            for g in groups:
+                getattr(g, "close", lambda: None)()
     res.wall_s = tick() - t_start
     res.links = np.array(links, dtype=LINK_DTYPE) if links else np.zeros(0, LINK_DTYPE)
     return res
+
+
+def _one_group(ds, algo, settings, inits, uavs, clock) -> list:
+    return [NodeGroup(ds, algo, settings, inits, uavs, clock)]
 
 
 FAULT_RULE = "faulty when |fault_err| > fault_threshold_m * row sigma / uwb_sigma_m (3 sigma of the row's noise)"

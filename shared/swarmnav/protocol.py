@@ -147,6 +147,24 @@ class PeerView(Mapping):
         return j != self._own and j in self._states
 
 
+def step_round(epochs: dict[int, NodeEpoch], snapshot: dict[int, NodeState]) \
+        -> tuple[dict[int, NodeState], dict[int, NodeEstimate]]:
+    """One round of the in-memory bus for the nodes of ``epochs`` (each a node's epoch generator,
+    in id order; a node whose epoch ends is removed): every one receives ``snapshot``, the round's
+    states of every live node (of these and of any other group of the same run), in id order.
+    Returns (the next state of each node still in the epoch, the estimate of each that ended)."""
+    index = RoundIndex(snapshot)  # shared by every node's view of this round
+    states: dict[int, NodeState] = {}
+    done: dict[int, NodeEstimate] = {}
+    for u, g in list(epochs.items()):
+        try:
+            states[u] = g.send(PeerView(snapshot, u, index))
+        except StopIteration as stop:
+            done[u] = stop.value
+            del epochs[u]
+    return states, done
+
+
 def run_epoch_in_process(epochs: dict[int, NodeEpoch],
                          last_states: dict[int, NodeState] | None = None) -> dict[int, NodeEstimate]:
     """In-memory transport: drive every live node's epoch generator in lock-step rounds.
@@ -155,19 +173,13 @@ def run_epoch_in_process(epochs: dict[int, NodeEpoch],
     Iteration is in UAV-id order; the result does not depend on it. If ``last_states`` is given,
     it is filled with each node's last broadcast state of the epoch (what a peer could query).
     """
-    states: dict[int, NodeState] = {u: next(g) for u, g in sorted(epochs.items())}
     active = dict(sorted(epochs.items()))
+    states: dict[int, NodeState] = {u: next(g) for u, g in active.items()}
     results: dict[int, NodeEstimate] = {}
     while active:
-        snapshot = dict(states)
-        index = RoundIndex(snapshot)  # shared by every node's view of this round
-        for u, g in list(active.items()):
-            try:
-                states[u] = g.send(PeerView(snapshot, u, index))
-            except StopIteration as stop:
-                results[u] = stop.value
-                if last_states is not None:
-                    last_states[u] = snapshot[u]
-                del active[u]
-                states.pop(u, None)
+        snapshot = states
+        states, done = step_round(active, snapshot)
+        results.update(done)
+        if last_states is not None:
+            last_states.update((u, snapshot[u]) for u in done)
     return results
