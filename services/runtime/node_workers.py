@@ -16,6 +16,7 @@ closes (the parent killed) and are stopped by :meth:`WorkerGroup.close`.
 from __future__ import annotations
 
 import multiprocessing as mp
+import pickle
 import time
 import traceback
 
@@ -30,6 +31,8 @@ def _serve(conn, ds, algo: str, settings: dict, inits: dict, uavs: list[int]) ->
             command, arg = conn.recv()
             if command == "stop":
                 return
+            if command == "step":  # the round's states, pickled once by the parent for every worker
+                arg = pickle.loads(conn.recv_bytes())
             group.submit(command, arg)
             conn.send((True, group.result()))
     except (EOFError, KeyboardInterrupt, BrokenPipeError):  # the parent is gone or interrupted
@@ -58,9 +61,18 @@ class WorkerGroup:
 
     def submit(self, command: str, arg) -> None:
         try:
-            self.conn.send((command, arg))
+            if command == "step":  # arg: the round's states, or their pickle (run_node_epoch's shared_payload)
+                self.conn.send((command, None))
+                self.conn.send_bytes(arg if isinstance(arg, bytes) else pickle.dumps(arg, pickle.HIGHEST_PROTOCOL))
+            else:
+                self.conn.send((command, arg))
         except (BrokenPipeError, OSError):
             self._died()
+
+    @staticmethod
+    def shared_payload(snapshot: dict) -> bytes:
+        """The round's states pickled once for every worker (~35 ms at N = 1,000)."""
+        return pickle.dumps(snapshot, pickle.HIGHEST_PROTOCOL)
 
     def result(self):
         try:

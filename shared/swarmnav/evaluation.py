@@ -154,7 +154,8 @@ class NodeGroup:
 def run_node_epoch(groups: list, k: int) -> dict[int, NodeEstimate]:
     """Epoch k of every node of ``groups`` (:class:`NodeGroup` or alike) in lock-step rounds: each
     round every group gets the round's states of every live node in id order (a broadcast bus);
-    the same numbers for any split of the nodes into groups."""
+    the same numbers for any split of the nodes into groups. A group with ``shared_payload``
+    (a worker process) is sent the states serialised once for all such groups."""
     for g in groups:
         g.submit("start", k)
     states: dict = {}
@@ -163,8 +164,9 @@ def run_node_epoch(groups: list, k: int) -> dict[int, NodeEstimate]:
     results: dict[int, NodeEstimate] = {}
     while states:
         snapshot = dict(sorted(states.items()))
+        payload = groups[0].shared_payload(snapshot) if hasattr(groups[0], "shared_payload") else snapshot
         for g in groups:
-            g.submit("step", snapshot)
+            g.submit("step", payload if hasattr(g, "shared_payload") else snapshot)
         states = {}
         for g in groups:
             new, done = g.result()
