@@ -3,4 +3,4 @@ _kernels.c); everything else is in pyproject.toml. `make setup` builds it (pip i
 from setuptools import Extension, setup
 
 setup(ext_modules=[Extension("swarmnav.estimators._kernels", ["shared/swarmnav/estimators/_kernels.c"],
-                             extra_compile_args=["-O2", "-fno-fast-math", "-ffp-contract=off"])])
+                             extra_compile_args=["-O3", "-fno-fast-math", "-ffp-contract=off"])])

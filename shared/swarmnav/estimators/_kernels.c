@@ -676,9 +676,8 @@ static int joint_numeric(Py_ssize_t n, const int *order, const int *R, const Py_
             double li[9], lj[9], u[9]; /* local copies: the blocks share the pool, so the compiler would reload */
             memcpy(li, pool + 9 * (Py_ssize_t)slot[i * n + k], sizeof li);
             const int *srow = slot + i * n;
-            for (Py_ssize_t q = rstart[s]; q < rstart[s + 1]; q++) {
+            for (Py_ssize_t q = rstart[s]; q <= p; q++) { /* R ascending: j <= i */
                 Py_ssize_t j = R[q];
-                if (j > i) continue;
                 memcpy(lj, pool + 9 * (Py_ssize_t)slot[j * n + k], sizeof lj);
                 for (int a = 0; a < 3; a++)
                     for (int b2 = 0; b2 < 3; b2++)
