@@ -146,6 +146,9 @@ class PeerView(Mapping):
     def __contains__(self, j: object) -> bool:
         return j != self._own and j in self._states
 
+    def get(self, j, default=None):  # Mapping.get goes through __getitem__ and an exception: ~3x slower
+        return default if j == self._own else self._states.get(j, default)
+
 
 def step_round(epochs: dict[int, NodeEpoch], snapshot: dict[int, NodeState]) \
         -> tuple[dict[int, NodeState], dict[int, NodeEstimate]]:

@@ -58,7 +58,7 @@ class RangeMemory:
         self.stats = [deque(maxlen=STAT_EPOCHS) for _ in range(self.epochs + 1)]  # per lag: (δ, σ²+σ²) arrays
         self.k = None
         self.rows = None  # this epoch's moved rows: (owners, levers, σ², z)
-        self.chain: dict[int, tuple] = {}  # node id -> (k, t, v, S, chain id): S = Σ trapezoid v·dt (m)
+        self.chain: dict[int, tuple] = {}  # node id -> (k, t, v, S, chain id): S = Σ trapezoid v·dt (m), 3 floats
         self._cid = 0
 
     def q_hat(self, m: int) -> float | None:
@@ -73,17 +73,20 @@ class RangeMemory:
         return max(0.0, float((1.4826 * np.median(np.abs(d))) ** 2 - np.mean(s2)))
 
     def _advance(self, u: int, k: int, t: float, v: np.ndarray) -> None:
-        """Node u's dead-reckoned displacement chain to epoch k (its velocity v at time t)."""
+        """Node u's dead-reckoned displacement chain to epoch k (its velocity v at time t). In
+        Python floats, component by component (the same operations as numpy's elementwise ones:
+        ~3x cheaper for one 3-vector; it runs for every neighbourhood node every epoch)."""
         prev = self.chain.get(u)
         if prev is not None and prev[0] == k:
             return
-        v = np.array(v, float)  # a copy
-        if prev is not None and prev[0] == k - 1 and all(map(math.isfinite, v.tolist())):
-            S = prev[3] + 0.5 * (prev[2] + v) * (t - prev[1])
+        vx, vy, vz = v = tuple(map(float, v))  # a copy
+        if prev is not None and prev[0] == k - 1 and math.isfinite(vx) and math.isfinite(vy) and math.isfinite(vz):
+            dt, (px, py, pz), (sx, sy, sz) = t - prev[1], prev[2], prev[3]
+            S = (sx + 0.5 * (px + vx) * dt, sy + 0.5 * (py + vy) * dt, sz + 0.5 * (pz + vz) * dt)
             self.chain[u] = (k, t, v, S, prev[4])
         else:
             self._cid += 1
-            self.chain[u] = (k, t, v, np.zeros(3), self._cid)
+            self.chain[u] = (k, t, v, (0.0, 0.0, 0.0), self._cid)
 
     def begin(self, node, peers: dict, own) -> None:
         """Move the remembered rows to the node's epoch (first round: ``peers`` are round-0 states,
@@ -113,7 +116,7 @@ class RangeMemory:
                 continue
             o_s = owners[sel]
             o_list = o_s.tolist()
-            d_own = me[3] - S_old[node.uav][1]
+            d_own = np.subtract(me[3], S_old[node.uav][1])
             d_nb = np.array([self.chain[o][3] for o in o_list]) - np.array([S_old[o][1] for o in o_list])
             lev = levers[sel] - d_own + d_nb
             rr, _ = ranges(r0_own + lev - np.array([peers[o].pos for o in o_list]))
@@ -194,7 +197,7 @@ class RangeMemory:
         if not keep.any():
             return
         owners = c.rng_owner[keep]
-        S = {u: (self.chain[u][4], self.chain[u][3].copy()) for u in [node.uav] + [int(o) for o in np.unique(owners)]
+        S = {u: (self.chain[u][4], self.chain[u][3]) for u in [node.uav] + [int(o) for o in np.unique(owners)]
              if u in self.chain and self.chain[u][0] == node.k}
         self.hist.append((node.k, owners.copy(), c.rng_lever[keep].copy(), c.rng_sig2[keep].copy(),
                           c.rng_z[keep].copy(), S))
