@@ -15,6 +15,7 @@ closes (the parent killed) and are stopped by :meth:`WorkerGroup.close`.
 
 from __future__ import annotations
 
+import gc
 import multiprocessing as mp
 import pickle
 import time
@@ -24,6 +25,9 @@ from swarmnav.evaluation import NodeGroup
 
 
 def _serve(conn, ds, algo: str, settings: dict, inits: dict, uavs: list[int]) -> None:
+    # what the fork inherited (the dataset, the modules) out of the collector's sight: its passes
+    # would write into every inherited object's header and so copy the parent's pages
+    gc.freeze()
     try:
         group = NodeGroup(ds, algo, settings, inits, uavs, time.perf_counter)
         conn.send((True, None))
