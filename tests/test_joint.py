@@ -144,6 +144,48 @@ def test_the_block_sparse_step_is_the_dense_solve(seed, n):
     assert _kernels.joint_step(x, *args, dx) is False and (dx == 7.0).all()
 
 
+@pytest.mark.parametrize("n", [8, 25])
+def test_a_factor_between_a_node_and_itself_adds_nothing_to_either_kernel(n):
+    """A range or az/el row whose two ends are the same node cancels in H and g exactly, in the dense
+    H (joint_system) as in the block-sparse step (joint_step): the dense and sparse paths of
+    joint.solve (either side of _SMALL_SYSTEM) agree on it. (Added term by term, an az/el one left
+    O(1) rounding on the dense H_AA: |J| ~ 1e6 at δ = 0.)"""
+    from swarmnav.estimators import _kernels
+
+    truth, mean, info, ia, ib, d, w, (obs, tgt, z, s2) = _problem(3, n, 150.0)
+    x = mean + 0.3
+    args = [mean, info, ia.astype(np.int64), ib.astype(np.int64), d, w / 0.01, obs.astype(np.int64),
+            tgt.astype(np.int64), z, 1.0 / s2]
+    selfed = list(args)
+    selfed[2], selfed[3] = np.r_[args[2], 2], np.r_[args[3], 2]  # a range 2-2
+    selfed[4], selfed[5] = np.r_[args[4], 40.0], np.r_[args[5], 100.0]
+    selfed[6], selfed[7] = np.r_[args[6], 4, 1], np.r_[args[7], 4, 1]  # az/el 4 -> 4, 1 -> 1
+    selfed[8], selfed[9] = np.vstack([args[8], [[0.3, 0.1], [-2.0, 0.4]]]), np.r_[args[9], 1e4, 3e5]
+    for a in (args, selfed):
+        a[:] = [np.ascontiguousarray(v) for v in a]
+    H0, g0, H1, g1 = np.empty((3 * n, 3 * n)), np.empty(3 * n), np.empty((3 * n, 3 * n)), np.empty(3 * n)
+    _kernels.joint_system(x, *args, H0, g0)
+    _kernels.joint_system(x, *selfed, H1, g1)
+    assert np.array_equal(H0, H1) and np.array_equal(g0, g1)
+    dx0, dx1 = np.empty((n, 3)), np.empty((n, 3))
+    assert _kernels.joint_step(x, *args, dx0) and _kernels.joint_step(x, *selfed, dx1)
+    assert np.array_equal(dx0, dx1)
+
+
+def test_joint_step_refuses_more_nodes_than_its_bookkeeping_allows():
+    """Above JOINT_STEP_MAX_NODES (4096) joint_step returns False with dx untouched (its n x n slot
+    table would be 4n² bytes and more); at 4096 it still solves (n priors and no factor: dx = μ − x)."""
+    from swarmnav.estimators import _kernels
+
+    e_i, e_f = np.zeros(0, np.int64), np.zeros(0)
+    for n, solved in ((4096, True), (4097, False)):
+        x, mean = np.zeros((n, 3)), np.ones((n, 3))
+        info = np.tile(2.0 * np.eye(3), (n, 1, 1))
+        dx = np.full((n, 3), 7.0)
+        assert _kernels.joint_step(x, mean, info, e_i, e_i, e_f, e_f, e_i, e_i, np.zeros((0, 2)), e_f, dx) is solved
+        assert np.allclose(dx, 1.0, rtol=0, atol=1e-15) if solved else (dx == 7.0).all()
+
+
 def test_the_c_kernel_rejects_bad_arrays_without_touching_memory():
     from swarmnav.estimators import _kernels
 

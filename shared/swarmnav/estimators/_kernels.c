@@ -70,7 +70,11 @@ static void azel_jacobian(double e, double nn, double uu, double *J, double *h_o
 
 /* The joint snapshot's range and az/el factors at x, one at a time: add(ctx, A, B, Bm, v) with the
    factor's 3 x 3 block Bm (symmetric) and gradient part v, to be added as H_AA += Bm, H_BB += Bm,
-   H_AB -= Bm, H_BA -= Bm, g_A += v, g_B -= v (the models: see joint_system above). */
+   H_AB -= Bm, H_BA -= Bm, g_A += v, g_B -= v (the models: see joint_system above). A factor between
+   a node and itself (A == B) adds nothing (its four H terms and two g terms cancel) and is skipped
+   here, for both kernels: added term by term, an az/el one (|J| ~ 1e6 at δ = 0) left the rounding of
+   a ~1e16 block in the dense H (O(1) on H_AA), so joint_system and joint_step disagreed; add is
+   never called with A == B. */
 typedef void (*factor_add_t)(void *ctx, Py_ssize_t A, Py_ssize_t Bn, const double *Bm, const double *v);
 
 static void joint_factors(const double *x, const long long *ia, const long long *ib, const double *d, const double *a,
@@ -78,6 +82,7 @@ static void joint_factors(const double *x, const long long *ia, const long long 
                           Py_ssize_t M, factor_add_t add, void *ctx) {
     for (Py_ssize_t k = 0; k < m; k++) {
         Py_ssize_t ea = ia[k], eb = ib[k];
+        if (ea == eb) continue;
         double dv[3] = {x[3 * ea] - x[3 * eb], x[3 * ea + 1] - x[3 * eb + 1], x[3 * ea + 2] - x[3 * eb + 2]};
         double u[3], B[9], v[3];
         double h = unit_of(dv, u);
@@ -91,6 +96,7 @@ static void joint_factors(const double *x, const long long *ia, const long long 
     }
     for (Py_ssize_t k = 0; k < M; k++) {
         Py_ssize_t t = tgt[k], ob = obs[k];
+        if (t == ob) continue;
         double e = x[3 * t] - x[3 * ob], nn = x[3 * t + 1] - x[3 * ob + 1], uu = x[3 * t + 2] - x[3 * ob + 2];
         double J[6], h;
         azel_jacobian(e, nn, uu, J, &h);
@@ -562,7 +568,7 @@ typedef struct {
 static void sparse_add(void *vctx, Py_ssize_t A, Py_ssize_t Bn, const double *Bm, const double *v) {
     blocks_t *ctx = vctx;
     Py_ssize_t n = ctx->n;
-    if (A == Bn) return; /* a factor between a node and itself: H_AA += 2B - 2B, g_A += v - v (as dense) */
+    /* A != Bn (joint_factors skips a factor between a node and itself; here it would add +B) */
     double *DA = ctx->pool + 9 * (Py_ssize_t)ctx->slot[A * n + A], *DB = ctx->pool + 9 * (Py_ssize_t)ctx->slot[Bn * n + Bn];
     double *O = ctx->pool + 9 * (Py_ssize_t)ctx->slot[A * n + Bn];
     for (int p = 0; p < 3; p++) {
