@@ -72,7 +72,8 @@ def solve(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np
     dx, sparse = np.empty((n, 3)), 3 * n > _SMALL_SYSTEM
     for _ in range(iterations):
         # block-sparse Cholesky above _SMALL_SYSTEM unknowns (~2x faster at ~50 nodes; below, the dense
-        # solve in C is as fast); H not numerically positive definite: the dense path's LU
+        # solve in C is as fast); refused (H not numerically positive definite, a non-finite step, more
+        # than 4096 nodes): the dense path (Cholesky, LU where that fails)
         if not (sparse and _kernels.joint_step(x, *args, dx)):
             dx = _dense_step(x, args)
         if not np.all(np.isfinite(dx)):
