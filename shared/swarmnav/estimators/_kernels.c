@@ -203,29 +203,35 @@ static void release_bufs(buf_t *b, int n) {
 
 /* The joint kernels' shared argument checks (x, prior_mean, prior_info, ia, ib, d, a, obs, tgt, z, c
    in b[0..10]): sizes consistent with n nodes, m ranges and M az/el rows, every index a node. */
-static int joint_check(const buf_t *b, Py_ssize_t n, Py_ssize_t m, Py_ssize_t M, const char *fn) {
+static long long *joint_check(const buf_t *b, Py_ssize_t n, Py_ssize_t m, Py_ssize_t M, const char *fn) {
     if (3 * n > MAX_UNKNOWNS) {
         PyErr_Format(PyExc_ValueError, "%s: system too large", fn);
-        return -1;
+        return NULL;
     }
     if (b[0].b.len != n * 24 || b[1].b.len != n * 24 || b[2].b.len != n * 72 || b[4].b.len != m * 8 ||
         b[5].b.len != m * 8 || b[6].b.len != m * 8 || b[8].b.len != M * 8 || b[9].b.len != M * 16 ||
         b[10].b.len != M * 8) {
         PyErr_Format(PyExc_ValueError, "%s: inconsistent array sizes", fn);
-        return -1;
+        return NULL;
     }
-    const long long *ia = b[3].b.buf, *ib = b[4].b.buf, *obs = b[7].b.buf, *tgt = b[8].b.buf;
-    for (Py_ssize_t k = 0; k < m; k++)
-        if (ia[k] < 0 || ia[k] >= n || ib[k] < 0 || ib[k] >= n) {
-            PyErr_Format(PyExc_ValueError, "%s: range end out of range", fn);
-            return -1;
+    /* the indices are copied, then checked and used from the copy: another thread may write the
+       caller's arrays meanwhile (a numpy call that releases the GIL), the copy stays as checked */
+    long long *idx = PyMem_Malloc((size_t)(2 * m + 2 * M + 1) * sizeof(long long));
+    if (idx == NULL) {
+        PyErr_NoMemory();
+        return NULL;
+    }
+    memcpy(idx, b[3].b.buf, (size_t)m * 8);
+    memcpy(idx + m, b[4].b.buf, (size_t)m * 8);
+    memcpy(idx + 2 * m, b[7].b.buf, (size_t)M * 8);
+    memcpy(idx + 2 * m + M, b[8].b.buf, (size_t)M * 8);
+    for (Py_ssize_t k = 0; k < 2 * m + 2 * M; k++)
+        if (idx[k] < 0 || idx[k] >= n) {
+            PyErr_Format(PyExc_ValueError, "%s: %s end out of range", fn, k < 2 * m ? "range" : "az/el");
+            PyMem_Free(idx);
+            return NULL;
         }
-    for (Py_ssize_t k = 0; k < M; k++)
-        if (obs[k] < 0 || obs[k] >= n || tgt[k] < 0 || tgt[k] >= n) {
-            PyErr_Format(PyExc_ValueError, "%s: az/el end out of range", fn);
-            return -1;
-        }
-    return 0;
+    return idx;
 }
 
 static PyObject *joint_system(PyObject *self, PyObject *args) {
@@ -235,14 +241,19 @@ static PyObject *joint_system(PyObject *self, PyObject *args) {
     PyObject *ret = NULL;
     if (get_bufs(args, b, 13, "dddqqddqqdddd", names, 11, "joint_system") < 0) return NULL;
     Py_ssize_t n = b[0].b.len / (3 * 8), m = b[3].b.len / 8, M = b[7].b.len / 8, N = 3 * n;
-    if (joint_check(b, n, m, M, "joint_system") < 0) goto done;
+    long long *idx = NULL;
+    if (N > MAX_UNKNOWNS) { /* before N * N is formed */
+        PyErr_SetString(PyExc_ValueError, "joint_system: system too large");
+        goto done;
+    }
     if (b[11].b.len != N * N * 8 || b[12].b.len != N * 8) {
         PyErr_SetString(PyExc_ValueError, "joint_system: inconsistent array sizes");
         goto done;
     }
+    if ((idx = joint_check(b, n, m, M, "joint_system")) == NULL) goto done;
     const double *x = b[0].b.buf, *pm = b[1].b.buf, *pi = b[2].b.buf, *d = b[5].b.buf, *a = b[6].b.buf,
                  *z = b[9].b.buf, *c = b[10].b.buf;
-    const long long *ia = b[3].b.buf, *ib = b[4].b.buf, *obs = b[7].b.buf, *tgt = b[8].b.buf;
+    const long long *ia = idx, *ib = idx + m, *obs = idx + 2 * m, *tgt = idx + 2 * m + M;
     double *H = b[11].b.buf, *g = b[12].b.buf;
     memset(H, 0, (size_t)N * N * sizeof(double));
     for (Py_ssize_t q = 0; q < n; q++) {
@@ -258,6 +269,7 @@ static PyObject *joint_system(PyObject *self, PyObject *args) {
     ret = Py_None;
     Py_INCREF(ret);
 done:
+    PyMem_Free(idx);
     release_bufs(b, 13);
     return ret;
 }
@@ -728,10 +740,12 @@ static PyObject *joint_step(PyObject *self, PyObject *args) {
     void *mem = NULL;
     if (get_bufs(args, b, 12, "dddqqddqqddd", names, 11, "joint_step") < 0) return NULL;
     Py_ssize_t n = b[0].b.len / (3 * 8), m = b[3].b.len / 8, M = b[7].b.len / 8;
-    if (joint_check(b, n, m, M, "joint_step") < 0 || b[11].b.len != n * 24) {
-        if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "joint_step: inconsistent array sizes");
+    long long *idx = NULL;
+    if (b[11].b.len != n * 24) {
+        PyErr_SetString(PyExc_ValueError, "joint_step: inconsistent array sizes");
         goto done;
     }
+    if ((idx = joint_check(b, n, m, M, "joint_step")) == NULL) goto done;
     if (n > JOINT_STEP_MAX_NODES) {
         ret = Py_False;
         Py_INCREF(ret);
@@ -739,7 +753,7 @@ static PyObject *joint_step(PyObject *self, PyObject *args) {
     }
     const double *x = b[0].b.buf, *pm = b[1].b.buf, *pi = b[2].b.buf, *d = b[5].b.buf, *a = b[6].b.buf,
                  *z = b[9].b.buf, *c = b[10].b.buf;
-    const long long *ia = b[3].b.buf, *ib = b[4].b.buf, *obs = b[7].b.buf, *tgt = b[8].b.buf;
+    const long long *ia = idx, *ib = idx + m, *obs = idx + 2 * m, *tgt = idx + 2 * m + M;
     double *dx = b[11].b.buf;
     /* one allocation: slot (n² int), R (n² int), order, deg (n int), rstart (n+1), nz (n²), done (n), g (3n),
        then the pool (its size known after the symbolic phase) */
@@ -785,6 +799,7 @@ static PyObject *joint_step(PyObject *self, PyObject *args) {
     ret = PyBool_FromLong(ok);
 done:
     PyMem_Free(mem);
+    PyMem_Free(idx);
     release_bufs(b, 12);
     return ret;
 }

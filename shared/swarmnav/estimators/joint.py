@@ -71,11 +71,11 @@ def solve(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np
             np.ascontiguousarray((1.0 if azel_w is None else np.asarray(azel_w, float)) / np.asarray(s2, float)))
     dx, sparse = np.empty((n, 3)), 3 * n > _SMALL_SYSTEM
     for _ in range(iterations):
-        # block-sparse Cholesky above _SMALL_SYSTEM unknowns (~2x faster at ~50 nodes; below, the dense
+        # block-sparse Cholesky above _SMALL_SYSTEM unknowns (~1.5-2x faster at ~50 nodes; below, the dense
         # solve in C is as fast); refused (H not numerically positive definite, a non-finite step, more
-        # than 4096 nodes): the dense path (Cholesky, LU where that fails)
+        # than 4096 nodes): the dense path (Cholesky, LU where that fails), for the rest of this solve
         if not (sparse and _kernels.joint_step(x, *args, dx)):
-            dx = _dense_step(x, args)
+            sparse, dx = False, _dense_step(x, args)
         if not np.all(np.isfinite(dx)):
             break
         x += dx
