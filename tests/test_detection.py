@@ -163,3 +163,30 @@ def test_adaptive_window_pools_until_enough_residuals():
     w0 = D.ResidualWindow(1)
     w0.push(np.array([1.0]))
     assert w0.values(np.array([0.1])).tolist() == [0.1]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_c_detect_is_the_numpy_detect_bit_for_bit(seed):
+    """detection.detect (one C call, ``_kernels.detect``) against its numpy reference
+    (detect_numpy) on residual sets with faults, ties, a pooled window, with and without the
+    ceiling and the H1 cap: Δh, classes and weights identical to the last bit; a non-finite
+    residual takes the numpy path."""
+    rng = np.random.default_rng(seed)
+    for _ in range(300):
+        m = int(rng.integers(0, 120))
+        res = np.abs(rng.normal(0, 0.3, m))
+        bad = rng.random(m) < 0.15
+        res[bad] = rng.uniform(0.5, 150.0, bad.sum())
+        if rng.random() < 0.3:
+            res = np.round(res, 1)  # ties
+        pool = np.concatenate([res, np.abs(rng.normal(0, 0.3, int(rng.integers(0, 200))))])
+        dl, ff = float(rng.uniform(0.1, 0.6)), float(rng.choice([1.0, 3.0]))
+        cf, cap = [None, 10.0, 2.0][int(rng.integers(0, 3))], bool(rng.integers(0, 2))
+        win = D.ResidualWindow(2)
+        win.push(pool[m:])
+        got = D.detect(res, dl, win, ff, "exact", cf, cap)
+        want = D.detect_numpy(res, dl, win.values(res), ff, "exact", cf, cap)
+        assert got[0] == want[0] and np.array_equal(got[1], want[1]) and np.array_equal(got[2], want[2])
+    res = np.array([0.1, np.nan, 3.0, 0.2, 0.15])
+    got, want = D.detect(res, 0.3), D.detect_numpy(res, 0.3, res)
+    assert got[0] == want[0] and np.array_equal(got[1], want[1]) and np.array_equal(got[2], want[2], equal_nan=True)

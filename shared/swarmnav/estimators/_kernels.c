@@ -2,6 +2,7 @@
 
    joint_system  the joint snapshot's (joint.py :func:`solve`), every position of a neighbourhood;
    joint_step    its Gauss-Newton step solved block-sparse, without the dense H (joint.py);
+   detect        the double-threshold test of the residual matrix (detection.py :func:`detect`);
    own_system    one node's own position against its neighbours' broadcasts (rounds.py
                  :func:`normal_equations`: the round solves, the commit, the reported solve);
    own_meat      the sandwich "meat" of those links (rounds.py :func:`link_meat`);
@@ -31,6 +32,7 @@
 #include <Python.h>
 #include <math.h>
 #include <stdint.h>
+#include <stdlib.h>
 #include <string.h>
 
 static double wrap_angle(double a) {
@@ -804,6 +806,119 @@ done:
     return ret;
 }
 
+/* detect(res, pool, delta_l, floor_factor, ceil_factor, cap_h1, cls, w) -> delta_h: the double-threshold
+   test of detection.py (:func:`detect` with the "exact" 2-means backend) in one call, the same
+   operations in the same order (bit-identical results; tests/test_detection.py): Δh from the
+   2-means boundary of the sorted ``pool`` (every split of the sorted values; the first minimum),
+   descended while above ceil_factor·Δl (ceil_factor ≤ 0: no ceiling) and clamped to
+   [floor_factor·Δl, ceiling]; then per residual of ``res`` its class (H2 2, H1 1, H0 0) into cls
+   (int64) and its eq. 24 weight, capped at (Δl/∂)² with cap_h1, into w. Every value finite (the
+   caller checks). */
+static int two_means(const double *x, Py_ssize_t n, double *c1, double *c2, double *b) {
+    if (n < 2 || x[n - 1] - x[0] <= 1e-12) return 0;
+    double s1 = 0.0, s2 = 0.0;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        s1 += x[i];
+        s2 += x[i] * x[i];
+        c1[i] = s1;
+        c2[i] = s2;
+    }
+    Py_ssize_t best_i = 0;
+    double best = 0.0;
+    for (Py_ssize_t s = 1; s < n; s++) {
+        double lo1 = c1[s - 1], lo2 = c2[s - 1], ds = (double)s;
+        double sse_lo = lo2 - lo1 * lo1 / ds;
+        double hi1 = c1[n - 1] - lo1;
+        double sse_hi = (c2[n - 1] - lo2) - hi1 * hi1 / ((double)n - ds);
+        double v = sse_lo + sse_hi;
+        if (s == 1 || v < best) {
+            best = v;
+            best_i = s - 1;
+        }
+    }
+    *b = 0.5 * (x[best_i] + x[best_i + 1]);
+    return 1;
+}
+
+static int cmp_double(const void *a, const void *b) {
+    double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
+static PyObject *detect_kernel(PyObject *self, PyObject *args) {
+    PyObject *res_o, *pool_o, *cls_o, *w_o;
+    double dl, floor_factor, ceil_factor;
+    int cap;
+    if (!PyArg_ParseTuple(args, "OOdddpOO", &res_o, &pool_o, &dl, &floor_factor, &ceil_factor, &cap, &cls_o, &w_o))
+        return NULL;
+    static const char *names[4] = {"res", "pool", "cls", "w"};
+    buf_t b[4];
+    PyObject *tuple = PyTuple_Pack(4, res_o, pool_o, cls_o, w_o), *ret = NULL;
+    if (tuple == NULL) return NULL;
+    int got = get_bufs(tuple, b, 4, "ddqd", names, 2, "detect");
+    Py_DECREF(tuple);
+    if (got < 0) return NULL;
+    Py_ssize_t m = b[0].b.len / 8, P = b[1].b.len / 8;
+    double *x = NULL;
+    if (b[2].b.len != m * 8 || b[3].b.len != m * 8) {
+        PyErr_SetString(PyExc_ValueError, "detect: cls and w must have res's length");
+        goto done;
+    }
+    x = PyMem_Malloc((size_t)(3 * P + 1) * sizeof(double));
+    if (x == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    memcpy(x, b[1].b.buf, (size_t)P * sizeof(double));
+    qsort(x, (size_t)P, sizeof(double), cmp_double);
+    double *c1 = x + P, *c2 = x + 2 * P;
+    double floor_ = floor_factor * dl, bnd;
+    int found = two_means(x, P, c1, c2, &bnd);
+    if (ceil_factor > 0.0) {
+        double ceil_ = ceil_factor * dl;
+        if (floor_ > ceil_) ceil_ = floor_;
+        Py_ssize_t n = P;
+        while (found && bnd > ceil_) {
+            while (n > 0 && !(x[n - 1] <= bnd)) n--; /* x[x <= b]: a prefix of the sorted values */
+            double nb;
+            if (!two_means(x, n, c1, c2, &nb) || nb >= bnd) break;
+            bnd = nb;
+        }
+        if (found && ceil_ < bnd) bnd = ceil_;
+    }
+    double dh = !found ? floor_ : (bnd < floor_ ? floor_ : bnd);
+    const double *r0 = b[0].b.buf;
+    long long *cls = b[2].b.buf;
+    double *w = b[3].b.buf;
+    for (Py_ssize_t k = 0; k < m; k++) {
+        double r = fabs(r0[k]), wk;
+        long long c = 2;
+        if (r > dl) c = 1;
+        if (r > dh) c = 0;
+        if (dh <= dl) {
+            wk = r >= dl ? 0.0 : 1.0;
+        } else if (r >= dl && r < dh) {
+            double t = (dh - r) / (dh - dl);
+            wk = dl / r * (t * t);
+        } else {
+            wk = r >= dh ? 0.0 : 1.0;
+        }
+        if (cap && r > dl && wk > 0.0) {
+            double q = dl / r;
+            q = q * q;
+            if (q < wk) wk = q;
+        }
+        if (c == 0) wk = 0.0;
+        cls[k] = c;
+        w[k] = wk;
+    }
+    ret = PyFloat_FromDouble(dh);
+done:
+    PyMem_Free(x);
+    release_bufs(b, 4);
+    return ret;
+}
+
 static PyMethodDef methods[] = {
     {"joint_system", joint_system, METH_VARARGS,
      "joint_system(x, prior_mean, prior_info, ia, ib, d, a, obs, tgt, z, c, H, g): fill H (3n, 3n) and g (3n,) "
@@ -814,6 +929,10 @@ static PyMethodDef methods[] = {
      "joint snapshot's Gauss-Newton step at x by a block-sparse Cholesky (minimum-degree order); False (dx "
      "untouched) if H is not numerically positive definite, the step is not finite or n > 4096 nodes. "
      "float64 / int64, C-contiguous."},
+    {"detect", detect_kernel, METH_VARARGS,
+     "detect(res, pool, delta_l, floor_factor, ceil_factor, cap_h1, cls, w) -> delta_h: detection.detect's "
+     "double-threshold test (exact 2-means on pool; ceil_factor <= 0: no ceiling), classes (int64) and eq. 24 "
+     "weights of res into cls and w. float64, C-contiguous, finite."},
     {"cho_solve", cho_solve, METH_VARARGS,
      "cho_solve(L, b, x): x = (L L^T)^-1 b, L lower triangular (n, n), b and x (n,). float64, C-contiguous."},
     {"spd_solve", spd_solve, METH_VARARGS,

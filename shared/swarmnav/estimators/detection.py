@@ -51,6 +51,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from . import _kernels  # C: built by `make setup` (setup.py)
 from .base import LinkClass
 from ..scenario import estimation_values
 
@@ -261,8 +262,26 @@ def detect(pairs_res: np.ndarray, delta_l: float, window: ResidualWindow | None 
            ) -> tuple[float, np.ndarray, np.ndarray]:
     """Δh, classes and weights for the current residuals (convenience wrapper).
 
-    Weights: eq. 24, and with ``cap_h1`` at most (Δl/∂)² (:func:`weight_cap_eq25`)."""
+    Weights: eq. 24, and with ``cap_h1`` at most (Δl/∂)² (:func:`weight_cap_eq25`). With the
+    "exact" backend and finite residuals it is one C call (``_kernels.detect``: the same operations,
+    bit-identical; ~10x cheaper than the ~25 numpy calls of :func:`detect_numpy`)."""
     pool = window.values(pairs_res) if window is not None else pairs_res
+    if backend == "exact" and (ceil_factor is None or ceil_factor > 0):
+        res = np.ascontiguousarray(pairs_res, float)
+        pool = np.ascontiguousarray(pool, float)
+        if np.isfinite(pool).all() and np.isfinite(res).all():
+            cls, w = np.empty(len(res), np.int64), np.empty(len(res))
+            dh = _kernels.detect(res, pool, float(delta_l), float(floor_factor),
+                                 -1.0 if ceil_factor is None else float(ceil_factor), bool(cap_h1), cls, w)
+            return dh, cls, w
+    return detect_numpy(pairs_res, delta_l, pool, floor_factor, backend, ceil_factor, cap_h1)
+
+
+def detect_numpy(pairs_res: np.ndarray, delta_l: float, pool: np.ndarray, floor_factor: float = DEFAULT_FLOOR_FACTOR,
+                 backend: str = "exact", ceil_factor: float | None = DEFAULT_CEIL_FACTOR, cap_h1: bool = True
+                 ) -> tuple[float, np.ndarray, np.ndarray]:
+    """:func:`detect` in numpy (the reference of the C kernel; any backend, non-finite values),
+    with the pooled residuals ``pool`` given."""
     dh = upper_threshold(pool, delta_l, floor_factor, backend, ceil_factor)
     cls, w = classify_and_weigh(pairs_res, delta_l, dh, cap_h1)
     return dh, cls, w
