@@ -297,3 +297,41 @@ def test_spd_solve_on_both_sides_of_the_small_system_threshold(n):
     np.testing.assert_allclose(joint._spd_solve(-H, g), np.linalg.solve(-H, g), rtol=1e-10, atol=1e-12)
     if n > 1:
         assert np.isnan(joint._spd_solve(np.zeros((n, n)), g)).all()
+
+
+@pytest.mark.parametrize("seed, n", [(6, 25), (7, 60)])
+def test_a_plan_gives_the_same_step_bit_for_bit_and_refuses_other_factors(seed, n):
+    """joint_step with a joint_plan (the symbolic phase done once per snapshot) = joint_step doing its
+    own, bit for bit, at any x and weights; a plan of other factors (another n, another pair, the
+    same pairs in another order) or not a plan is refused before anything is written."""
+    from swarmnav.estimators import _kernels
+
+    truth, mean, info, ia, ib, d, w, (obs, tgt, z, s2) = _problem(seed, n, 120.0)
+    ia, ib, obs, tgt = (np.ascontiguousarray(v, np.int64) for v in (ia, ib, obs, tgt))
+    plan = _kernels.joint_plan(n, ia, ib, obs, tgt)
+    rng = np.random.default_rng(seed)
+    for _ in range(5):
+        x = mean + rng.normal(0, 1.0, mean.shape)
+        args = [mean, info, ia, ib, d, rng.uniform(0.1, 1, len(d)) / 0.01, obs, tgt, z, 1.0 / s2]
+        a, b = np.empty((n, 3)), np.empty((n, 3))
+        assert _kernels.joint_step(x, *args, a) is True
+        assert _kernels.joint_step(x, *args, b, plan) is True
+        assert np.array_equal(a, b)
+    others = [_kernels.joint_plan(n + 1, ia, ib, obs, tgt),
+              _kernels.joint_plan(n, ia, np.where(ib == ib[0], (ib[0] + 1) % n, ib), obs, tgt),
+              _kernels.joint_plan(n, ib, ia, obs, tgt)]
+    dx = np.full((n, 3), 7.0)
+    for bad in others:
+        with pytest.raises(ValueError, match="plan"):
+            _kernels.joint_step(x, *args, dx, bad)
+    for bad in (None, 3, np.zeros(3)):
+        with pytest.raises((ValueError, TypeError)):
+            _kernels.joint_step(x, *args, dx, bad)
+    assert (dx == 7.0).all()
+    with pytest.raises(ValueError):
+        _kernels.joint_plan(n, np.r_[ia[:-1], n], ib, obs, tgt)  # an end outside the n nodes
+    with pytest.raises(ValueError):
+        _kernels.joint_plan(0, ia[:0], ib[:0], obs[:0], tgt[:0])
+    with pytest.raises(ValueError):
+        _kernels.joint_plan(n, ia, ib[:-1], obs, tgt)  # pairs of two lengths
+    assert _kernels.joint_plan(4097, ia, ib, obs, tgt) is None  # joint_step refuses so many nodes

@@ -38,7 +38,7 @@
 static double wrap_angle(double a) {
     /* numpy's wrap_angle: pi - mod(pi - a, 2 pi), mod with the sign of the divisor */
     double y = 2.0 * M_PI, x = M_PI - a;
-    double m = fmod(x, y);
+    double m = fabs(x) < y ? x : fmod(x, y); /* fmod is exact: x itself when |x| < y (the usual case) */
     if (m != 0.0 && ((y < 0) != (m < 0))) m += y;
     return M_PI - m;
 }
@@ -578,7 +578,7 @@ done:
 
 typedef struct {
     Py_ssize_t n;
-    int *slot;    /* n*n: index of the pair's 3 x 3 block in pool (-1: uncoupled); (i, i): the diagonal */
+    const int *slot; /* n*n: index of the pair's 3 x 3 block in pool (-1: uncoupled); (i, i): the diagonal */
     double *pool; /* blocks: the diagonal one full and symmetric; an off-diagonal pair {i, j} holds
                      the rows of max(i, j) and the columns of min(i, j) until one of them is
                      eliminated, then L_ik (rows i, columns k of the eliminated k) */
@@ -734,13 +734,122 @@ static int joint_numeric(Py_ssize_t n, const int *order, const int *R, const Py_
     return 1;
 }
 
+/* A snapshot's symbolic phase, done once for all its joint_step calls (its ranged pairs and az/el rows
+   stay; x, weights and values change): the checked index copies (ia, ib, obs, tgt), the elimination
+   order and the block slots. One PyMem block: this header, then the arrays; freed with the capsule
+   (joint_plan) or by joint_step (a call without a plan). */
+typedef struct {
+    Py_ssize_t n, m, M, nb;
+    long long *idx;          /* 2m + 2M: ia, ib, obs, tgt */
+    Py_ssize_t *rstart;      /* n + 1 */
+    double *scratch;         /* the caller's doubles (joint_step without a plan: g, 3n) */
+    int *slot, *R, *order, *deg; /* n*n, n*n, n, n */
+    unsigned char *nz, *done; /* n*n, n: the symbolic phase's work space */
+} plan_t;
+
+#define PLAN_NAME "swarmnav._kernels.joint_plan"
+
+/* Allocate a plan for n nodes, m ranges, M az/el rows and n_scratch doubles (n*n products are safe:
+   3n <= MAX_UNKNOWNS is checked first); NULL with MemoryError set. */
+static void *plan_alloc(Py_ssize_t n, Py_ssize_t m, Py_ssize_t M, Py_ssize_t n_scratch, plan_t **out) {
+    size_t nn = (size_t)(n * n);
+    size_t o_idx = (sizeof(plan_t) + 7) & ~(size_t)7;
+    size_t o_rstart = o_idx + (size_t)(2 * m + 2 * M) * sizeof(long long);
+    size_t o_scratch = o_rstart + (size_t)(n + 1) * sizeof(Py_ssize_t);
+    size_t o_int = o_scratch + (size_t)n_scratch * sizeof(double);
+    size_t o_bytes = o_int + (2 * nn + 2 * (size_t)n) * sizeof(int);
+    char *mem = PyMem_Malloc(o_bytes + nn + (size_t)n + 1);
+    if (mem == NULL) {
+        PyErr_NoMemory();
+        return NULL;
+    }
+    plan_t *p = (plan_t *)mem;
+    p->n = n, p->m = m, p->M = M, p->nb = 0;
+    p->idx = (long long *)(mem + o_idx);
+    p->rstart = (Py_ssize_t *)(mem + o_rstart);
+    p->scratch = (double *)(mem + o_scratch);
+    p->slot = (int *)(mem + o_int), p->R = p->slot + nn, p->order = p->R + nn, p->deg = p->order + n;
+    p->nz = (unsigned char *)(mem + o_bytes), p->done = p->nz + nn;
+    *out = p;
+    return mem;
+}
+
+/* The symbolic phase of p's nodes over the checked indices ia, ib (m), obs, tgt (M). */
+static void joint_plan_fill(plan_t *p, const long long *ia, const long long *ib, const long long *obs,
+                            const long long *tgt) {
+    p->nb = joint_symbolic(p->n, ia, ib, p->m, obs, tgt, p->M, p->nz, p->deg, p->done, p->order, p->R, p->rstart,
+                           p->slot);
+}
+
+static void plan_capsule_free(PyObject *cap) {
+    PyMem_Free(PyCapsule_GetPointer(cap, PLAN_NAME));
+}
+
+static PyObject *joint_plan(PyObject *self, PyObject *args) {
+    static const char *names[4] = {"ia", "ib", "obs", "tgt"};
+    Py_ssize_t n;
+    PyObject *rest;
+    buf_t b[4];
+    if (!PyTuple_Check(args) || PyTuple_GET_SIZE(args) != 5) {
+        PyErr_SetString(PyExc_TypeError, "joint_plan takes n and 4 arrays");
+        return NULL;
+    }
+    n = PyLong_AsSsize_t(PyTuple_GET_ITEM(args, 0));
+    if (n == -1 && PyErr_Occurred()) return NULL;
+    if (n < 1 || n > MAX_UNKNOWNS / 3) {
+        PyErr_SetString(PyExc_ValueError, "joint_plan: n out of range");
+        return NULL;
+    }
+    if ((rest = PyTuple_GetSlice(args, 1, 5)) == NULL) return NULL;
+    int got = get_bufs(rest, b, 4, "qqqq", names, 4, "joint_plan");
+    Py_DECREF(rest);
+    if (got < 0) return NULL;
+    PyObject *ret = NULL;
+    Py_ssize_t m = b[0].b.len / 8, M = b[2].b.len / 8;
+    if (b[1].b.len != m * 8 || b[3].b.len != M * 8) {
+        PyErr_SetString(PyExc_ValueError, "joint_plan: inconsistent array sizes");
+        goto done;
+    }
+    if (n > JOINT_STEP_MAX_NODES) { /* joint_step takes no plan there: the dense path */
+        ret = Py_None;
+        Py_INCREF(ret);
+        goto done;
+    }
+    plan_t *p;
+    void *mem = plan_alloc(n, m, M, 0, &p);
+    if (mem == NULL) goto done;
+    memcpy(p->idx, b[0].b.buf, (size_t)m * 8); /* copied, then checked and used from the copy */
+    memcpy(p->idx + m, b[1].b.buf, (size_t)m * 8);
+    memcpy(p->idx + 2 * m, b[2].b.buf, (size_t)M * 8);
+    memcpy(p->idx + 2 * m + M, b[3].b.buf, (size_t)M * 8);
+    for (Py_ssize_t k = 0; k < 2 * m + 2 * M; k++)
+        if (p->idx[k] < 0 || p->idx[k] >= n) {
+            PyErr_Format(PyExc_ValueError, "joint_plan: %s end out of range", k < 2 * m ? "range" : "az/el");
+            PyMem_Free(mem);
+            goto done;
+        }
+    joint_plan_fill(p, p->idx, p->idx + m, p->idx + 2 * m, p->idx + 2 * m + M);
+    if ((ret = PyCapsule_New(mem, PLAN_NAME, plan_capsule_free)) == NULL) PyMem_Free(mem);
+done:
+    release_bufs(b, 4);
+    return ret;
+}
+
 static PyObject *joint_step(PyObject *self, PyObject *args) {
     static const char *names[12] = {"x", "prior_mean", "prior_info", "ia", "ib", "d", "a", "obs", "tgt",
                                     "z", "c", "dx"};
     buf_t b[12];
-    PyObject *ret = NULL;
+    PyObject *ret = NULL, *arrays = args;
     void *mem = NULL;
-    if (get_bufs(args, b, 12, "dddqqddqqddd", names, 11, "joint_step") < 0) return NULL;
+    const plan_t *plan = NULL;
+    if (PyTuple_Check(args) && PyTuple_GET_SIZE(args) == 13) { /* the 13th: a joint_plan of these factors */
+        plan = PyCapsule_GetPointer(PyTuple_GET_ITEM(args, 12), PLAN_NAME);
+        if (plan == NULL) return NULL;
+        if ((arrays = PyTuple_GetSlice(args, 0, 12)) == NULL) return NULL;
+    }
+    int got = get_bufs(arrays, b, 12, "dddqqddqqddd", names, 11, "joint_step");
+    if (arrays != args) Py_DECREF(arrays);
+    if (got < 0) return NULL;
     Py_ssize_t n = b[0].b.len / (3 * 8), m = b[3].b.len / 8, M = b[7].b.len / 8;
     long long *idx = NULL;
     if (b[11].b.len != n * 24) {
@@ -748,6 +857,11 @@ static PyObject *joint_step(PyObject *self, PyObject *args) {
         goto done;
     }
     if ((idx = joint_check(b, n, m, M, "joint_step")) == NULL) goto done;
+    if (plan != NULL && (plan->n != n || plan->m != m || plan->M != M ||
+                         memcmp(plan->idx, idx, (size_t)(2 * m + 2 * M) * sizeof(long long)) != 0)) {
+        PyErr_SetString(PyExc_ValueError, "joint_step: the plan is not of these factors");
+        goto done;
+    }
     if (n > JOINT_STEP_MAX_NODES) {
         ret = Py_False;
         Py_INCREF(ret);
@@ -757,22 +871,24 @@ static PyObject *joint_step(PyObject *self, PyObject *args) {
                  *z = b[9].b.buf, *c = b[10].b.buf;
     const long long *ia = idx, *ib = idx + m, *obs = idx + 2 * m, *tgt = idx + 2 * m + M;
     double *dx = b[11].b.buf;
-    /* one allocation: slot (n² int), R (n² int), order, deg (n int), rstart (n+1), nz (n²), done (n), g (3n),
-       then the pool (its size known after the symbolic phase) */
-    size_t nn = (size_t)(n * n);
-    size_t head = nn * sizeof(int) * 2 + (size_t)(2 * n) * sizeof(int) + (size_t)(n + 1) * sizeof(Py_ssize_t);
-    head = (head + 7) & ~(size_t)7;
-    size_t bytes_nz = (nn + (size_t)n + 7) & ~(size_t)7;
-    mem = PyMem_Malloc(head + bytes_nz + (size_t)(3 * n) * sizeof(double) + 1);
-    if (mem == NULL) {
-        PyErr_NoMemory();
-        goto done;
+    const int *slot, *R, *order;
+    const Py_ssize_t *rstart;
+    Py_ssize_t nb;
+    double *g;
+    if (plan != NULL) { /* the symbolic phase done once for the snapshot's steps */
+        if ((mem = PyMem_Malloc((size_t)(3 * n + 1) * sizeof(double))) == NULL) {
+            PyErr_NoMemory();
+            goto done;
+        }
+        g = mem;
+        slot = plan->slot, R = plan->R, order = plan->order, rstart = plan->rstart, nb = plan->nb;
+    } else {
+        plan_t *own = NULL;
+        if ((mem = plan_alloc(n, m, M, 3 * n, &own)) == NULL) goto done;
+        g = own->scratch;
+        joint_plan_fill(own, ia, ib, obs, tgt);
+        slot = own->slot, R = own->R, order = own->order, rstart = own->rstart, nb = own->nb;
     }
-    int *slot = mem, *R = slot + nn, *order = R + nn, *deg = order + n;
-    Py_ssize_t *rstart = (Py_ssize_t *)((char *)mem + nn * sizeof(int) * 2 + (size_t)(2 * n) * sizeof(int));
-    unsigned char *nz = (unsigned char *)mem + head, *done_ = nz + nn;
-    double *g = (double *)((char *)mem + head + bytes_nz);
-    Py_ssize_t nb = joint_symbolic(n, ia, ib, m, obs, tgt, M, nz, deg, done_, order, R, rstart, slot);
     double *pool = PyMem_Calloc((size_t)nb * 9 + 1, sizeof(double));
     if (pool == NULL) {
         PyErr_NoMemory();
@@ -925,10 +1041,14 @@ static PyMethodDef methods[] = {
      "of the joint snapshot's Gauss-Newton step at x (n, 3); a = range weight / sigma^2 (m,), c = az/el "
      "weight / sigma^2 (M,). float64 / int64, C-contiguous."},
     {"joint_step", joint_step, METH_VARARGS,
-     "joint_step(x, prior_mean, prior_info, ia, ib, d, a, obs, tgt, z, c, dx) -> bool: dx (n, 3) = H^-1 g of the "
+     "joint_step(x, prior_mean, prior_info, ia, ib, d, a, obs, tgt, z, c, dx[, plan]) -> bool: dx (n, 3) = H^-1 g of the "
      "joint snapshot's Gauss-Newton step at x by a block-sparse Cholesky (minimum-degree order); False (dx "
-     "untouched) if H is not numerically positive definite, the step is not finite or n > 4096 nodes. "
-     "float64 / int64, C-contiguous."},
+     "untouched) if H is not numerically positive definite, the step is not finite or n > 4096 nodes; plan: "
+     "joint_plan of the same n and indices (ValueError if not). float64 / int64, C-contiguous."},
+    {"joint_plan", joint_plan, METH_VARARGS,
+     "joint_plan(n, ia, ib, obs, tgt) -> plan: the symbolic phase of joint_step (elimination order, fill) for "
+     "these factors among n nodes, to pass as joint_step's 13th argument on every step of one snapshot; None "
+     "above 4096 nodes (joint_step refuses those). int64, C-contiguous."},
     {"detect", detect_kernel, METH_VARARGS,
      "detect(res, pool, delta_l, floor_factor, ceil_factor, cap_h1, cls, w) -> delta_h: detection.detect's "
      "double-threshold test (exact 2-means on pool; ceil_factor <= 0: no ceiling), classes (int64) and eq. 24 "

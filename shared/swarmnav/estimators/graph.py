@@ -55,7 +55,7 @@ from ..scenario import estimation_values
 from .base import InitialState, LinkClass, LinkInfo, NodeEstimate, NodeEstimator, NodeState, tuned_settings
 from .graph_links import detect_links, own_bearings, own_hood, own_ranges, rot3, round_cache, take_round0, tdoa_weights
 from .imu import InitialRest, preintegrate
-from .own_factors import DRAG_KEY, OwnFactors
+from .own_factors import DRAG_KEY, OwnFactors, swarm_tags
 from .range_memory import RangeMemory
 from .relink import RelinkedCommit
 from .restart import ATT_SIGMA_RAD, restart_position, restart_velocity
@@ -100,11 +100,10 @@ class GraphEstimator(NodeEstimator):
         self.tags = {int(k): np.asarray(v, float) for k, v in node.tags.items()}
         # every UAV's tag lever arms (neighbours' tags are placed with their broadcast attitude;
         # skipped when no other UAV's tag is off its body origin, e.g. every simulated scenario)
-        self.tag_levers = {n.id: {int(k): np.asarray(v, float) for k, v in n.tags.items()}
-                           for n in meta.nodes if n.kind == "uav" and any(any(v) for v in n.tags.values())}
+        self.tag_levers, self._uav_ids = swarm_tags(meta)  # shared by every node of the swarm: read only
         self.peer_levers = t.peer_levers and any(
             np.any(v) for o, tags in self.tag_levers.items() if o != uav for v in tags.values())
-        self.anchors, self._uav_ids = meta.anchors(), set(meta.uav_ids())
+        self.anchors = meta.anchors()
         self.params = floored_params(node.imu, meta.earth, *t.bias_rw_floor)
         self._rest = InitialRest.from_settings(t, init.vel, init.vel_sigma, float(np.linalg.norm(self.params.n_gravity)))
         self.drag = t.rotor_drag and getattr(node, "airframe", None) == "multirotor"

@@ -37,6 +37,20 @@ def _unwrap_error(f: gtsam.CustomFactor):
     return err
 
 
+_swarm_tags: tuple = (None, None)  # (meta, its swarm_tags): every node of a swarm asks, each O(N)
+
+
+def swarm_tags(meta: DatasetMeta) -> tuple[dict[int, dict[int, np.ndarray]], frozenset[int]]:
+    """(UAV id -> tag id -> lever arm (body m) for every UAV with a tag off its body origin, the UAV
+    ids), computed once per ``meta`` (the last one asked): O(N) per swarm, not per node."""
+    global _swarm_tags
+    if _swarm_tags[0] is not meta:
+        levers = {n.id: {int(k): np.asarray(v, float) for k, v in n.tags.items()}
+                  for n in meta.nodes if n.kind == "uav" and any(any(v) for v in n.tags.values())}
+        _swarm_tags = (meta, (levers, frozenset(meta.uav_ids())))
+    return _swarm_tags[1]
+
+
 class OwnFactors:
     """Builds one node's own anchor, passive-range and rotor-drag factors (tuning: ``t``, an
     ``EstimatorTuning``; ``drag`` whether the node is a multirotor with the drag model on)."""
@@ -44,7 +58,7 @@ class OwnFactors:
     def __init__(self, uav: int, meta: DatasetMeta, t, uwb_sigma: float, tags: dict, params, drag: bool):
         self.uav, self.meta, self.uwb_sigma, self.tags, self.params = uav, meta, uwb_sigma, tags, params
         self.anchors = meta.anchors()
-        self.uavs = set(meta.uav_ids())
+        self.uavs = swarm_tags(meta)[1]
         self.time_shift = t.anchor_time_shift
         me = gtsam.noiseModel.mEstimator
         self._kernel = {"huber": me.Huber, "cauchy": me.Cauchy, "tukey": me.Tukey, "gm": me.GemanMcClure}[t.anchor_kernel]
