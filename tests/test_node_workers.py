@@ -71,3 +71,58 @@ def test_a_worker_that_dies_stops_the_run_loudly(smoke, monkeypatch):
     with pytest.raises(RuntimeError, match=r"died \(exit code 7\)"):
         run_algorithm(ds, "atvfg", 1, settings, None, None, worker_groups(2))
     assert not mp.active_children()
+
+
+_KILLED_PARENT = """
+import os, signal, sys
+from pathlib import Path
+REPO = Path(sys.argv[1])
+import multiprocessing as mp
+from services.runtime.node_workers import worker_groups
+from services.settings import estimator_settings
+from swarmnav.config import load_config
+from swarmnav.evaluation import run_algorithm
+from swarmnav.sim import simulate
+
+sc = load_config(REPO / "configs" / "smoke.toml", ["scenario.duration_s=12"])
+settings = estimator_settings(sc.estimation, base_dirs=(REPO, REPO / "configs"))
+
+def progress(k, K):
+    if k == 2:
+        print(" ".join(str(p.pid) for p in mp.active_children()), flush=True)
+        os.kill(os.getpid(), signal.SIGKILL)  # no finally, no atexit: as the OOM killer or kill -9
+
+run_algorithm(simulate(sc, 1), "atvfg", 1, settings, progress, None, worker_groups(3))
+"""
+
+
+def _running(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return state not in ("Z", "X")  # an orphan's zombie waits for init to reap it: it has exited
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+def test_workers_exit_when_the_parent_is_killed(tmp_path):
+    """A SIGKILLed parent runs no cleanup: each worker must see EOF on its pipe. Forked, a worker
+    also held the parent's end of its own pipe (and of the earlier workers'), so none ever did."""
+    import subprocess
+    import sys
+
+    env = dict(os.environ, PYTHONPATH=f"{REPO}:{REPO / 'shared'}")
+    out, err = tmp_path / "stdout", tmp_path / "stderr"
+    with out.open("w") as fo, err.open("w") as fe:  # files, not pipes: orphans would hold a pipe open
+        rc = subprocess.run([sys.executable, "-c", _KILLED_PARENT, str(REPO)], cwd=REPO, env=env,
+                            stdout=fo, stderr=fe, timeout=120).returncode
+    assert rc == -9, err.read_text()[-2000:]
+    pids = [int(p) for p in out.read_text().split()]
+    assert len(pids) == 3, out.read_text()
+    deadline = time.monotonic() + 20.0
+    while any(map(_running, pids)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    alive = [p for p in pids if _running(p)]
+    for p in alive:  # don't leave them behind on a failure
+        os.kill(p, 9)
+    assert not alive, f"orphaned node workers still running: {alive}"

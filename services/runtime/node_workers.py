@@ -24,7 +24,11 @@ import traceback
 from swarmnav.evaluation import NodeGroup
 
 
-def _serve(conn, ds, algo: str, settings: dict, inits: dict, uavs: list[int]) -> None:
+def _serve(conn, ds, algo: str, settings: dict, inits: dict, uavs: list[int], inherited=()) -> None:
+    # the parent's ends of the pipes (this worker's own and the earlier workers'), copied by the fork:
+    # while this process held its own pipe's other end, the parent's death never reached it as EOF
+    for c in inherited:
+        c.close()
     # what the fork inherited (the dataset, the modules) out of the collector's sight: its passes
     # would write into every inherited object's header and so copy the parent's pages
     gc.freeze()
@@ -51,12 +55,13 @@ def _serve(conn, ds, algo: str, settings: dict, inits: dict, uavs: list[int]) ->
 
 class WorkerGroup:
     """A :class:`~swarmnav.evaluation.NodeGroup` in a forked worker process, with the same
-    ``submit``/``result`` (``submit`` returns at once: the workers compute side by side)."""
+    ``submit``/``result`` (``submit`` returns at once: the workers compute side by side).
+    ``inherited``: the connections of the workers started before this one (the child closes them)."""
 
-    def __init__(self, ctx, ds, algo: str, settings: dict, inits: dict, uavs: list[int]):
+    def __init__(self, ctx, ds, algo: str, settings: dict, inits: dict, uavs: list[int], inherited=()):
         self.uavs = list(uavs)
         parent, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_serve, args=(child, ds, algo, settings, inits, self.uavs),
+        self.proc = ctx.Process(target=_serve, args=(child, ds, algo, settings, inits, self.uavs, (parent, *inherited)),
                                 name=f"node-worker-{self.uavs[0]}", daemon=True)
         self.proc.start()
         child.close()
@@ -118,7 +123,7 @@ def worker_groups(workers: int):
         groups: list[WorkerGroup] = []
         try:
             for i in range(w):
-                groups.append(WorkerGroup(ctx, ds, algo, settings, inits, uavs[i::w]))
+                groups.append(WorkerGroup(ctx, ds, algo, settings, inits, uavs[i::w], [g.conn for g in groups]))
         except BaseException:
             for g in groups:
                 g.close()
