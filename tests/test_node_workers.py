@@ -58,6 +58,29 @@ def test_a_workers_error_reaches_the_caller_and_every_worker_stops(smoke, monkey
     assert not mp.active_children()
 
 
+class SolverDiverged(Exception):
+    """Pickles (args = its message) but cannot be rebuilt from that: __init__ takes two arguments."""
+
+    def __init__(self, uav, k):
+        super().__init__(f"node {uav} diverged at epoch {k}")
+
+
+def test_a_workers_error_that_cannot_be_rebuilt_still_reaches_the_caller(smoke, monkeypatch):
+    ds, settings = smoke
+    real = GraphEstimator.iterate
+
+    def failing(self, r, peers):
+        if self.uav == 3 and self.k == 4:
+            raise SolverDiverged(3, 4)
+        return real(self, r, peers)
+
+    monkeypatch.setattr(GraphEstimator, "iterate", failing)
+    with pytest.raises(Exception, match="SolverDiverged: node 3 diverged at epoch 4") as err:
+        run_algorithm(ds, "atvfg", 1, settings, None, None, worker_groups(2))
+    assert "failing" in str(err.value)  # the worker's traceback
+    assert not mp.active_children()
+
+
 def test_a_worker_that_dies_stops_the_run_loudly(smoke, monkeypatch):
     ds, settings = smoke
     real = GraphEstimator.begin_epoch

@@ -48,6 +48,7 @@ def _serve(conn, ds, algo: str, settings: dict, inits: dict, uavs: list[int], in
     except Exception as e:  # noqa: BLE001 - sent to the parent, which raises it
         e.add_note(f"in node worker (UAVs {uavs[0]}, {uavs[1] if len(uavs) > 1 else ''}…):\n{traceback.format_exc()}")
         try:
+            pickle.loads(pickle.dumps(e))  # the parent must rebuild it too (not so if its __init__ takes other arguments)
             conn.send((False, e))
         except Exception:  # noqa: BLE001 - not picklable: its text
             conn.send((False, RuntimeError(f"{type(e).__name__}: {e}\n{traceback.format_exc()}")))
