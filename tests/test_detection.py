@@ -190,3 +190,27 @@ def test_the_c_detect_is_the_numpy_detect_bit_for_bit(seed):
     res = np.array([0.1, np.nan, 3.0, 0.2, 0.15])
     got, want = D.detect(res, 0.3), D.detect_numpy(res, 0.3, res)
     assert got[0] == want[0] and np.array_equal(got[1], want[1]) and np.array_equal(got[2], want[2], equal_nan=True)
+
+
+@pytest.mark.parametrize("res,ff,cf", [([-1e154, -5e153, 1e154], 0.0, None), ([-1e154, -1e154, 2e154], 3.0, 1e160)])
+def test_the_c_detect_follows_argmin_where_the_2_means_sums_overflow(res, ff, cf):
+    """|x| > ~1e154 overflows the squared sums: some splits' SSE is NaN, and np.argmin takes the
+    first NaN where the C loop (v < best) skipped them — a different Δh from finite input."""
+    res = np.array(res)
+    with np.errstate(all="ignore"):
+        got, want = D.detect(res, 0.3, None, ff, "exact", cf), D.detect_numpy(res, 0.3, res, ff, "exact", cf)
+    assert got[0] == want[0] and np.array_equal(got[1], want[1]) and np.array_equal(got[2], want[2])
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_the_c_detect_refuses_non_finite_values(bad):
+    """The kernel called directly (detection.detect sends such values to detect_numpy): a
+    ValueError, not a NaN comparator inside qsort."""
+    from swarmnav.estimators import _kernels
+
+    r, cls, w = np.array([0.1, 5.0, 60.0]), np.empty(3, np.int64), np.empty(3)
+    for which in ("res", "pool"):
+        args = {"res": r.copy(), "pool": r.copy()}
+        args[which][1] = bad
+        with pytest.raises(ValueError, match=f"{which} has a non-finite value"):
+            _kernels.detect(args["res"], args["pool"], 0.3, 3.0, 10.0, True, cls, w)

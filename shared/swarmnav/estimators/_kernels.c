@@ -947,7 +947,8 @@ static int two_means(const double *x, Py_ssize_t n, double *c1, double *c2, doub
         double hi1 = c1[n - 1] - lo1;
         double sse_hi = (c2[n - 1] - lo2) - hi1 * hi1 / ((double)n - ds);
         double v = sse_lo + sse_hi;
-        if (s == 1 || v < best) {
+        /* np.argmin: the first minimum, or the first NaN if any (an overflowed sum: |x| > ~1e154) */
+        if (s == 1 || v < best || (isnan(v) && !isnan(best))) {
             best = v;
             best_i = s - 1;
         }
@@ -979,6 +980,15 @@ static PyObject *detect_kernel(PyObject *self, PyObject *args) {
     if (b[2].b.len != m * 8 || b[3].b.len != m * 8) {
         PyErr_SetString(PyExc_ValueError, "detect: cls and w must have res's length");
         goto done;
+    }
+    for (int a = 0; a < 2; a++) { /* the caller routes non-finite values to numpy; NaN would also break qsort's order */
+        const double *v = b[a].b.buf;
+        for (Py_ssize_t k = 0; k < b[a].b.len / 8; k++)
+            if (!isfinite(v[k])) {
+                PyErr_Format(PyExc_ValueError, "detect: %s has a non-finite value (detection.detect_numpy handles them)",
+                             names[a]);
+                goto done;
+            }
     }
     x = PyMem_Malloc((size_t)(3 * P + 1) * sizeof(double));
     if (x == NULL) {
@@ -1052,7 +1062,7 @@ static PyMethodDef methods[] = {
     {"detect", detect_kernel, METH_VARARGS,
      "detect(res, pool, delta_l, floor_factor, ceil_factor, cap_h1, cls, w) -> delta_h: detection.detect's "
      "double-threshold test (exact 2-means on pool; ceil_factor <= 0: no ceiling), classes (int64) and eq. 24 "
-     "weights of res into cls and w. float64, C-contiguous, finite."},
+     "weights of res into cls and w. float64, C-contiguous, finite (else ValueError)."},
     {"cho_solve", cho_solve, METH_VARARGS,
      "cho_solve(L, b, x): x = (L L^T)^-1 b, L lower triangular (n, n), b and x (n,). float64, C-contiguous."},
     {"spd_solve", spd_solve, METH_VARARGS,
