@@ -29,11 +29,12 @@ def smoke():
     return simulate(sc, 1), estimator_settings(sc.estimation, base_dirs=(REPO, REPO / "configs"))
 
 
-@pytest.mark.parametrize("workers", [2, 3])
-def test_spread_over_workers_the_estimates_are_bit_identical(smoke, workers):
+@pytest.mark.parametrize("workers, algo", [(2, "atvfg"), (3, "atvfg"), (2, "ins"), (2, "fkf")])
+def test_spread_over_workers_the_estimates_are_bit_identical(smoke, workers, algo):
+    """(ins: no links, no Δh; fkf: a whole-swarm estimator, run in one process whatever the groups)"""
     ds, settings = smoke
-    one = run_algorithm(ds, "atvfg", 1, settings, None, time.perf_counter)
-    many = run_algorithm(ds, "atvfg", 1, settings, None, time.perf_counter, worker_groups(workers))
+    one = run_algorithm(ds, algo, 1, settings, None, time.perf_counter)
+    many = run_algorithm(ds, algo, 1, settings, None, time.perf_counter, worker_groups(workers))
     for f in ("pos", "vel", "pos_cov", "quat", "rounds", "delta_h_m"):
         assert np.array_equal(getattr(one, f), getattr(many, f), equal_nan=True), f
     assert np.array_equal(np.sort(one.links, order=["k", "observer", "other"]),
