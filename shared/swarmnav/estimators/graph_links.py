@@ -149,22 +149,21 @@ def take_round0(node: GraphEstimator, peers: dict[int, NodeState]) -> tuple[int,
     if not node.round0_pending:
         return tuple(sorted(u for u in node.hood if u in peers))
     node.round0_pending = False
-    known = node.peer_ranges  # (a, b), a ≤ b -> m
+    keep = node.peer_ranges.setdefault  # (a, b), a ≤ b -> m; a pair's first report stays
     for j in sorted(node.hood1):  # in id order (the peers' order): the first report of a pair's range is kept
         s = peers.get(j)
         if s is not None and (s.ranges or s.n_links):  # round-0 states carry ranges and link count
             node.peer_links[j] = max(len(s.ranges), int(s.n_links))
             for o, d in s.ranges.items():
-                pair = (j, o) if j < o else (o, j)
-                if pair not in known:
-                    known[pair] = float(d)
+                keep((j, o) if j < o else (o, j), float(d))
             node.hood.update(map(int, s.ranges))
     node.hood.update(node.hood1)
     node.hood.discard(me)
     nodes = tuple(sorted(u for u in node.hood if u in peers))
-    for j in nodes:
-        if peers[j].r == 0:
-            node.relinker.peer_traj[j] = peers[j].traj
+    if node.relink > 0:  # the trajectories only a relinked commit reads
+        for j in nodes:
+            if peers[j].r == 0:
+                node.relinker.peer_traj[j] = peers[j].traj
     return nodes
 
 
