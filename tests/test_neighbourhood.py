@@ -66,3 +66,27 @@ def test_neighbourhood_bounded_and_holds_every_measured_neighbour():
     # and without a radius every live UAV is in every node's rounds
     _, full, _ = _run(sc, ds, None, 2)
     assert all(len(h) == len(uavs) for h in full[-1].values())
+
+
+def test_round0_keeps_the_first_report_of_a_pair_in_id_order():
+    """take_round0 merges its neighbours' ranges keyed by the unordered pair: where two neighbours
+    report the same pair (each measured it: two numbers), the lower id's report is the one kept, a
+    pair already known keeps its range, and a state filed under another id than its own is read as
+    that id's (the merge goes through NodeState.range_pairs, built once per state)."""
+    from types import SimpleNamespace
+
+    from swarmnav.estimators.base import NodeState
+    from swarmnav.estimators.graph_links import take_round0
+
+    def state(u, ranges):
+        return NodeState(u, 1, 0, 1.0, np.zeros(3), np.eye(3), np.zeros(3), ranges=ranges, n_links=len(ranges))
+
+    peers = {2: state(2, {3: 10.0, 5: 20.0}), 3: state(3, {2: 11.0, 4: 30.0}), 4: state(9, {3: 31.0, 6: 40.0})}
+    node = SimpleNamespace(uav=1, hood_radius=None, round0_pending=True, hood1={2, 3, 4}, hood=set(),
+                           peer_bearings={}, peer_ranges={(5, 6): 99.0, (2, 5): 21.0}, peer_links={},
+                           p_loc=np.zeros(3), relink=0)
+    nodes = take_round0(node, peers)
+    assert node.peer_ranges == {(2, 3): 10.0, (2, 5): 21.0, (3, 4): 30.0, (4, 6): 40.0, (5, 6): 99.0}
+    assert nodes == (2, 3, 4) and node.hood == {2, 3, 4, 5, 6}
+    assert node.peer_links == {2: 2, 3: 2, 4: 2}
+    assert peers[2].range_pairs == ({(2, 3): 10.0, (2, 5): 20.0}, (3, 5))

@@ -80,6 +80,20 @@ class NodeState:
         targets = sorted(self.bearings)
         return np.array(targets, np.int64), np.array([self.bearings[t] for t in targets], float).reshape(-1, 3)
 
+    @cached_property
+    def range_pairs(self) -> tuple[dict[tuple[int, int], float], tuple[int, ...]]:
+        """``ranges`` keyed by the unordered pair (lower id, higher id) -> m (floats), and the other
+        ends' ids — merged by every receiver's round 0 (graph_links.take_round0), built once per state."""
+        return range_pairs_of(self.uav, self.ranges)
+
+
+def range_pairs_of(uav: int, ranges: dict) -> tuple[dict[tuple[int, int], float], tuple[int, ...]]:
+    """UAV ``uav``'s ``ranges`` (other id -> m) keyed by the unordered pair (lower id, higher id), as
+    floats, and the other ends' ids (:attr:`NodeState.range_pairs`)."""
+    u = int(uav)
+    ids = tuple(map(int, ranges))
+    return {((u, o) if u < o else (o, u)): float(d) for o, d in zip(ids, ranges.values())}, ids
+
 
 _NO_TARGETS, _NO_BEARINGS = np.zeros(0, np.int64), np.zeros((0, 3))
 

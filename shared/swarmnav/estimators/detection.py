@@ -48,6 +48,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Mapping, Sequence
+from itertools import chain
 
 import numpy as np
 
@@ -69,8 +70,8 @@ class RangePairs:
         ids = np.array(nodes, np.int64)
         members = set(nodes)
         keys = sorted(k for k in ranges if k[0] in members and k[1] in members)
-        self.d = np.array([ranges[k] for k in keys], float)
-        self.pairs = np.array(keys, np.int64).reshape(-1, 2)
+        self.d = np.fromiter(map(ranges.__getitem__, keys), float, len(keys))
+        self.pairs = np.fromiter(chain.from_iterable(keys), np.int64, 2 * len(keys)).reshape(-1, 2)
         order = np.argsort(ids, kind="stable")  # nodes need not be sorted: index by lookup
         self.ia = order[np.searchsorted(ids, self.pairs[:, 0], sorter=order)]
         self.ib = order[np.searchsorted(ids, self.pairs[:, 1], sorter=order)]

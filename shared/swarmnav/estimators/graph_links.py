@@ -20,7 +20,7 @@ import numpy as np
 from . import detection as det
 from ..dataset import EpochInput
 from ..models.base import wrap_angle
-from .base import NodeState
+from .base import NodeState, range_pairs_of
 from .rounds import RoundCache, tdoa_residuals
 
 # the per-UAV graph estimator (graph.GraphEstimator) whose epoch state these functions read
@@ -149,14 +149,19 @@ def take_round0(node: GraphEstimator, peers: dict[int, NodeState]) -> tuple[int,
     if not node.round0_pending:
         return tuple(sorted(u for u in node.hood if u in peers))
     node.round0_pending = False
-    keep = node.peer_ranges.setdefault  # (a, b), a ≤ b -> m; a pair's first report stays
-    for j in sorted(node.hood1):  # in id order (the peers' order): the first report of a pair's range is kept
+    reports = []  # the neighbours' ranges, (a, b), a ≤ b -> m, in id order (the peers' order)
+    for j in sorted(node.hood1):
         s = peers.get(j)
         if s is not None and (s.ranges or s.n_links):  # round-0 states carry ranges and link count
             node.peer_links[j] = max(len(s.ranges), int(s.n_links))
-            for o, d in s.ranges.items():
-                keep((j, o) if j < o else (o, j), float(d))
-            node.hood.update(map(int, s.ranges))
+            pairs, ends = s.range_pairs if s.uav == j else range_pairs_of(j, s.ranges)
+            reports.append(pairs)
+            node.hood.update(ends)
+    merged: dict[tuple[int, int], float] = {}
+    for pairs in reversed(reports):  # the first report of a pair (in id order) is the one kept
+        merged.update(pairs)
+    merged.update(node.peer_ranges)  # and a pair known already keeps its range
+    node.peer_ranges = merged
     node.hood.update(node.hood1)
     node.hood.discard(me)
     nodes = tuple(sorted(u for u in node.hood if u in peers))
