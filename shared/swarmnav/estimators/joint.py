@@ -11,8 +11,8 @@ covariance × 0 in the link noise) converge to; solving it directly takes one ro
 (and no covariance inflation to keep the iteration stable). The double-threshold test is iterated
 with it (IRLS): weights from the residuals at the priors, solve, weights at the solution, solve.
 
-Units and frames: positions ENU (m), angles rad. numpy and one C kernel (_kernels.c, the normal
-equations of a Gauss–Newton step): no I/O, no gtsam.
+Units and frames: positions ENU (m), angles rad. numpy and the C kernels of _kernels.c (a
+Gauss–Newton step, its symbolic phase once per snapshot, the double-threshold test): no I/O, no gtsam.
 """
 
 from __future__ import annotations
