@@ -69,6 +69,27 @@ def load1() -> float:
     return round(os.getloadavg()[0], 2)
 
 
+def calibration() -> dict:
+    """How fast this machine is right now (this VM's speed varies ~2x over hours by itself, docs/scale.md
+    "Session 13"): a 3 M-iteration Python loop (ms) and a 200 x 200 Cholesky (µs, best of 50), each the
+    best of 3 — so that benches of different days compare."""
+    import numpy as np
+
+    loops, code = [], compile("s = 0\nfor i in range(3_000_000):\n    s += i\n", "<calibration>", "exec")
+    for _ in range(3):  # at module level (globals in a dict), as the figures in docs/scale.md were taken
+        t = time.perf_counter()
+        exec(code, {})
+        loops.append(time.perf_counter() - t)
+    A = np.random.default_rng(0).normal(size=(200, 200))
+    A = A @ A.T + 200 * np.eye(200)
+    chol = []
+    for _ in range(50):
+        t = time.perf_counter()
+        np.linalg.cholesky(A)
+        chol.append(time.perf_counter() - t)
+    return {"py_loop_ms": round(min(loops) * 1e3, 1), "chol200_us": round(min(chol) * 1e6, 1), "load1": load1()}
+
+
 def _overrides(n: int, dur: float) -> list[str]:
     return [f"swarm.n_uavs={n}", f"scenario.duration_s={dur:g}"]
 
@@ -451,6 +472,17 @@ def render_md(res: dict) -> str:
     return "\n".join(L)
 
 
+def _speed_md(res: dict) -> str:
+    """The machine's speed at the start and the end (calibration()), for comparing benches."""
+    c0, c1 = res.get("calibration_start"), res.get("calibration_end")
+    if not c0:
+        return ""
+    end = f", at the end {c1['py_loop_ms']:g} ms and {c1['chol200_us']:g} µs" if c1 else ""
+    return (f"Machine speed: a 3 M-iteration Python loop took {c0['py_loop_ms']:g} ms and a 200 × 200 Cholesky "
+            f"{c0['chol200_us']:g} µs at the start{end} (this VM measured 154–421 ms and 89–278 µs over sessions "
+            "13–15: compare benches at like speeds).")
+
+
 def _inproc_md(res: dict) -> list[str]:
     """Header and the in-process table, one row per size."""
     L = [f"# swarmnav scale bench — {res['started']}", "",
@@ -459,7 +491,7 @@ def _inproc_md(res: dict) -> list[str]:
          f"N at {res['density_per_km3']:g} UAV/km³, 100 m altitude band, UWB 400 m: ~17–19 links per UAV at every N; "
          f"masters every 8th UAV), atvfg, seed {SEED}. 1-min load average at the start {res['load1_start']}, "
          f"at the end {res.get('load1_end')}; the bench took {_f(res.get('bench_wall_s'), '{:.0f}')} s. "
-         "Machine shared: the load average is given beside every figure.", "",
+         "Machine shared: the load average is given beside every figure. " + _speed_md(res), "",
          "## In-process cost against swarm size", "",
          "One fresh process per size: simulate, then atvfg over every epoch on the in-memory bus (`swarmnav evaluate`'s "
          "path). *step* = the estimator's own time per UAV-epoch (all rounds); *wall/UAV-epoch* = median epoch wall ÷ N "
@@ -646,6 +678,7 @@ def main(argv=None) -> int:
         _bench_profiles(res, prof, out, left, save)
     if not a.no_dist:
         _bench_dist(res, dist, out, left, save)
+    res["calibration_end"] = calibration()
     save()
     try:
         write_plot(res, out / "cost_vs_n.png")
@@ -682,7 +715,8 @@ def _new_result(started: str) -> dict:
     return {"started": started, "commit": commit + ("+dirty" if dirty else ""), "config": "configs/scale.toml",
             "algo": ALGO, "seed": SEED, "density_per_km3": load_config(CONFIG).swarm.density_per_km3,
             "host": {"cpus": os.cpu_count(), "mem_gb": psutil.virtual_memory().total / 2**30, "python": platform.python_version()},
-            "load1_start": load1(), "inproc": [], "dist": [], "profile": None, "notes": []}
+            "load1_start": load1(), "calibration_start": calibration(), "inproc": [], "dist": [], "profile": None,
+            "notes": []}
 
 
 def _bench_inproc(res: dict, sizes, out: Path, left, save, quick: bool) -> None:
