@@ -150,3 +150,20 @@ def test_workers_exit_when_the_parent_is_killed(tmp_path):
     for p in alive:  # don't leave them behind on a failure
         os.kill(p, 9)
     assert not alive, f"orphaned node workers still running: {alive}"
+
+
+def test_packed_estimates_of_the_wrong_shape_raise_instead_of_being_rechunked():
+    """pack_estimates lays each estimate out as 19 numbers (pos, vel, pos_cov, quat): an estimate of
+    another shape (here a 6 x 6 pos_cov, 46 numbers) must raise, as _store does in one process, not be
+    reshaped into rows of 19 that mix the estimates (19 such estimates: 874 = 46 x 19 numbers)."""
+    from services.runtime.node_workers import pack_estimates, unpack_estimates
+    from swarmnav.estimators.base import NodeEstimate
+
+    ests = {u: NodeEstimate(u, 1, 0.1, np.full(3, float(u)), np.zeros(3), np.eye(6)) for u in range(19)}
+    with pytest.raises(ValueError):
+        pack_estimates(ests)
+    good = {u: NodeEstimate(u, 1, 0.1, np.full(3, float(u)), np.zeros(3), np.eye(3)) for u in range(19)}
+    back = unpack_estimates(pack_estimates(good))
+    assert all(np.array_equal(back[u].pos, good[u].pos) and np.array_equal(back[u].pos_cov, good[u].pos_cov)
+               for u in good)
+    assert unpack_estimates(pack_estimates({})) == {}

@@ -41,7 +41,7 @@ def pack_estimates(done: dict[int, NodeEstimate]) -> tuple:
     vecs = np.array([np.concatenate([np.asarray(e.pos, np.float64), np.asarray(e.vel, np.float64),
                                      np.asarray(e.pos_cov, np.float64).ravel(),
                                      z4 if e.quat is None else np.asarray(e.quat, np.float64)]) for e in es],
-                    np.float64).reshape(-1, 19)
+                    np.float64).reshape(len(es), 19)  # not -1: rows of another length raise, never re-chunk
     links = [li for e in es for li in e.links]
     link_ids = np.array([(li.other, int(li.cls)) for li in links], np.int64).reshape(-1, 2)
     link_vals = np.array([(li.residual_m, li.weight) for li in links], np.float64).reshape(-1, 2)
