@@ -79,7 +79,8 @@ class RangeMemory:
         prev = self.chain.get(u)
         if prev is not None and prev[0] == k:
             return
-        vx, vy, vz = v = tuple(map(float, v))  # a copy
+        # a copy in Python floats (tolist: the same values, ~7x cheaper than float() per numpy scalar)
+        vx, vy, vz = v = tuple(v.tolist()) if type(v) is np.ndarray and v.ndim == 1 else tuple(map(float, v))
         if prev is not None and prev[0] == k - 1 and math.isfinite(vx) and math.isfinite(vy) and math.isfinite(vz):
             dt, (px, py, pz), (sx, sy, sz) = t - prev[1], prev[2], prev[3]
             S = (sx + 0.5 * (px + vx) * dt, sy + 0.5 * (py + vy) * dt, sz + 0.5 * (pz + vz) * dt)
