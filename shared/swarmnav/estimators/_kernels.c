@@ -203,6 +203,23 @@ static void release_bufs(buf_t *b, int n) {
         if (b[i].held) PyBuffer_Release(&b[i].b);
 }
 
+/* ia, ib (m each), obs, tgt (M each) copied into dst (2m + 2M), then checked there (every index a
+   node of n): the indices are used from the copy, since another thread may write the caller's arrays
+   meanwhile (a numpy call that releases the GIL) while the copy stays as checked. -1 with ValueError. */
+static int copy_indices(long long *dst, const void *ia, const void *ib, Py_ssize_t m, const void *obs,
+                        const void *tgt, Py_ssize_t M, Py_ssize_t n, const char *fn) {
+    memcpy(dst, ia, (size_t)m * 8);
+    memcpy(dst + m, ib, (size_t)m * 8);
+    memcpy(dst + 2 * m, obs, (size_t)M * 8);
+    memcpy(dst + 2 * m + M, tgt, (size_t)M * 8);
+    for (Py_ssize_t k = 0; k < 2 * m + 2 * M; k++)
+        if (dst[k] < 0 || dst[k] >= n) {
+            PyErr_Format(PyExc_ValueError, "%s: %s end out of range", fn, k < 2 * m ? "range" : "az/el");
+            return -1;
+        }
+    return 0;
+}
+
 /* The joint kernels' shared argument checks (x, prior_mean, prior_info, ia, ib, d, a, obs, tgt, z, c
    in b[0..10]): sizes consistent with n nodes, m ranges and M az/el rows, every index a node. */
 static long long *joint_check(const buf_t *b, Py_ssize_t n, Py_ssize_t m, Py_ssize_t M, const char *fn) {
@@ -216,23 +233,15 @@ static long long *joint_check(const buf_t *b, Py_ssize_t n, Py_ssize_t m, Py_ssi
         PyErr_Format(PyExc_ValueError, "%s: inconsistent array sizes", fn);
         return NULL;
     }
-    /* the indices are copied, then checked and used from the copy: another thread may write the
-       caller's arrays meanwhile (a numpy call that releases the GIL), the copy stays as checked */
     long long *idx = PyMem_Malloc((size_t)(2 * m + 2 * M + 1) * sizeof(long long));
     if (idx == NULL) {
         PyErr_NoMemory();
         return NULL;
     }
-    memcpy(idx, b[3].b.buf, (size_t)m * 8);
-    memcpy(idx + m, b[4].b.buf, (size_t)m * 8);
-    memcpy(idx + 2 * m, b[7].b.buf, (size_t)M * 8);
-    memcpy(idx + 2 * m + M, b[8].b.buf, (size_t)M * 8);
-    for (Py_ssize_t k = 0; k < 2 * m + 2 * M; k++)
-        if (idx[k] < 0 || idx[k] >= n) {
-            PyErr_Format(PyExc_ValueError, "%s: %s end out of range", fn, k < 2 * m ? "range" : "az/el");
-            PyMem_Free(idx);
-            return NULL;
-        }
+    if (copy_indices(idx, b[3].b.buf, b[4].b.buf, m, b[7].b.buf, b[8].b.buf, M, n, fn) < 0) {
+        PyMem_Free(idx);
+        return NULL;
+    }
     return idx;
 }
 
@@ -818,16 +827,10 @@ static PyObject *joint_plan(PyObject *self, PyObject *args) {
     plan_t *p;
     void *mem = plan_alloc(n, m, M, 0, &p);
     if (mem == NULL) goto done;
-    memcpy(p->idx, b[0].b.buf, (size_t)m * 8); /* copied, then checked and used from the copy */
-    memcpy(p->idx + m, b[1].b.buf, (size_t)m * 8);
-    memcpy(p->idx + 2 * m, b[2].b.buf, (size_t)M * 8);
-    memcpy(p->idx + 2 * m + M, b[3].b.buf, (size_t)M * 8);
-    for (Py_ssize_t k = 0; k < 2 * m + 2 * M; k++)
-        if (p->idx[k] < 0 || p->idx[k] >= n) {
-            PyErr_Format(PyExc_ValueError, "joint_plan: %s end out of range", k < 2 * m ? "range" : "az/el");
-            PyMem_Free(mem);
-            goto done;
-        }
+    if (copy_indices(p->idx, b[0].b.buf, b[1].b.buf, m, b[2].b.buf, b[3].b.buf, M, n, "joint_plan") < 0) {
+        PyMem_Free(mem);
+        goto done;
+    }
     joint_plan_fill(p, p->idx, p->idx + m, p->idx + 2 * m, p->idx + 2 * m + M);
     if ((ret = PyCapsule_New(mem, PLAN_NAME, plan_capsule_free)) == NULL) PyMem_Free(mem);
 done:

@@ -70,13 +70,12 @@ def solve(prior_mean: np.ndarray, prior_info: np.ndarray, ia: np.ndarray, ib: np
             np.ascontiguousarray(obs, np.int64), np.ascontiguousarray(tgt, np.int64),
             np.ascontiguousarray(z, float).reshape(-1, 2),
             np.ascontiguousarray((1.0 if azel_w is None else np.asarray(azel_w, float)) / np.asarray(s2, float)))
-    dx, sparse = np.empty((n, 3)), 3 * n > _SMALL_SYSTEM
+    dx, sparse, planned = np.empty((n, 3)), 3 * n > _SMALL_SYSTEM, () if plan is None else (plan,)
     for _ in range(iterations):
         # block-sparse Cholesky above _SMALL_SYSTEM unknowns (~1.5-2x faster at ~50 nodes; below, the dense
         # solve in C is as fast); refused (H not numerically positive definite, a non-finite step, more
         # than 4096 nodes): the dense path (Cholesky, LU where that fails), for the rest of this solve
-        if not (sparse and (_kernels.joint_step(x, *args, dx) if plan is None else
-                            _kernels.joint_step(x, *args, dx, plan))):
+        if not (sparse and _kernels.joint_step(x, *args, dx, *planned)):
             sparse, dx = False, _dense_step(x, args)
         if not np.all(np.isfinite(dx)):
             break
