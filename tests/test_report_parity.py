@@ -262,3 +262,21 @@ def test_assembly_scores_detection_of_every_delta_l_algorithm():
     assert b["detection"] is not None and b["detection"]["tn"] == 1  # the one labelled link, classified H2
     assert rep["thresholds"]["delta_l_algorithm"] == "atvfg_paper" and rep["thresholds"]["delta_l_m"] == 0.4
     assert rep["detection_single_threshold"] is not None
+
+
+def test_a_run_that_failed_makes_the_report_incomplete_and_says_so():
+    """An algorithm × seed that did not finish is missing from the tables: report.json is then not
+    complete and report.md names the run and why at the top (found by attacking `evaluate --jobs 2`:
+    a node worker killed left a report with empty tables, complete true, and no word of it)."""
+    from swarmnav.assembly import assemble_report
+    from swarmnav.report import render_markdown
+
+    meta, r, truth, labels = _tiny_run(0.557)
+    why = "fg failed on seed 0 (RuntimeError: node worker 99 died (exit code -9))"
+    rep = assemble_report(mode="in-process", meta=meta, seeds=[0], runs={"atvfg": [r]}, truths=[truth], labels=[labels],
+                          settings={"delta_l_m": 0.557}, provenance={"git": "x", "config_sha256": "y", "packages": {}},
+                          source="dataset", failed={"fg/seed0": why})
+    assert rep["complete"] is False and rep["failed"] == {"fg/seed0": why}
+    md = render_markdown(rep)
+    assert f"**FAILED, not in the tables: fg/seed0** — {why}" in md.split("## Table 2")[0]
+    assert "**INCOMPLETE**" in md

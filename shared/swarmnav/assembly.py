@@ -140,6 +140,8 @@ def assemble_report(*, mode: str, meta, seeds: Sequence[int], runs: Mapping[str,
     th_head = thresholds.get(head) if head else None
     used = th_head["delta_l_used_m"] if th_head else None
     comp = completeness(runs, excused, done, lost_epochs, conflicts)
+    if failed:  # a run that did not finish is missing from the tables: the report is not complete
+        comp["complete"] = False
     ex = {**comp, "rejected": dict(rejected or {}), "source": source, "failed": dict(failed or {}),
           "gnss_outages": [w.model_dump() if hasattr(w, "model_dump") else dict(w) for w in windows],
           "fault_threshold_m": meta.fault_threshold_m, "fault_threshold_rule": FAULT_RULE,

@@ -206,6 +206,8 @@ def _intro_md(rep: dict) -> list[str]:
                  + (f" and on {', '.join(ev['tuning_scenarios'])}" if ev.get("tuning_scenarios") else "") + ").")
     if "central" in rep["algorithms"]:
         L.append("`central` is an **oracle**: one joint graph with the truly faulty links removed using the labels.")
+    for run, why in sorted((rep.get("failed") or {}).items()):
+        L.append(f"**FAILED, not in the tables: {run}** — {why}")
     L.append("")
     return L
 
