@@ -18,7 +18,7 @@ help:            ## list targets and variables
 	@echo "variables: CONFIG=$(CONFIG) ALGO=$(ALGO) SEED=$(SEED) MILUV=$(MILUV) LIVE=$(LIVE) (e.g. make run CONFIG=configs/smoke.toml ALGO=fg SEED=2; make run LIVE=1: follow the run in a Rerun viewer)"
 
 setup: $(STAMP)  ## create/refresh .venv with the pinned dependencies
-$(STAMP): requirements.lock pyproject.toml setup.py shared/swarmnav/estimators/_kernels.c
+$(STAMP): requirements.lock pyproject.toml setup.py shared/swarmnav/estimators/_kernels.c shared/swarmnav/wire/_frames.c
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -r requirements.lock
