@@ -68,9 +68,14 @@ def _same_state(a: NodeState, b: NodeState) -> None:
     assert all(type(v) is tuple and _bits(v) == _bits(b.bearings[t]) for t, v in a.bearings.items())
     assert list(a.traj) == list(b.traj) and all(_bits(v) == _bits(b.traj[e]) and v.shape == (3,) for e, v in a.traj.items())
     assert all(type(j) is int for j in [*a.ranges, *a.bearings, *a.traj])
+    assert type(a.t) is type(b.t) is float and type(a.delta_m) is type(b.delta_m) is float
+    assert all(type(v) is float for v in [*a.ranges.values(), *(x for t in a.bearings.values() for x in t)])
+    # whether the decoder set the frame's views: asked before reading the cached property, which
+    # would otherwise put it in both __dict__s and make the comparison vacuous
+    assert ("bearing_rows" in a.__dict__) == ("bearing_rows" in b.__dict__)
     for x, y in zip(a.bearing_rows, b.bearing_rows):
         assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
-    assert ("bearing_rows" in a.__dict__) == ("bearing_rows" in b.__dict__)
+        assert x.flags.writeable == y.flags.writeable
 
 
 def _agree(payload: bytes, envelope_m: float = ENVELOPE_M) -> bool:
