@@ -192,3 +192,16 @@ def test_scope_checked_after_the_c_path():
         frames.decode_state(p, min_k=s.k + 1)
     assert e.value.reason == "stale"
     assert frames.decode_state(p, uav=s.uav, min_k=s.k).k == s.k
+
+
+def test_envelope_that_is_not_a_double_gets_the_references_verdict():
+    """The C checks see the receiver's envelope as a double; the reference compares with the value
+    itself (an int exactly). An envelope no double equals goes to the reference."""
+    p = bytearray(frames.encode_state(_random_state(np.random.default_rng(3))))
+    struct.pack_into("<3d", p, HDR + 8, float(2**53 + 4), 0.0, 0.0)  # pos: just past an int envelope of 2**53 + 3
+    p = bytes(p)
+    assert isinstance(_reference(p, 2**53 + 3), str)
+    with pytest.raises(WireError) as e:
+        frames.decode_state(p, envelope_m=2**53 + 3)
+    assert e.value.reason == "envelope"
+    assert frames.decode_state(p, envelope_m=2**53 + 4).uav == frames.decode_state_py(p, envelope_m=2**53 + 4).uav

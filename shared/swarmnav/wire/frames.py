@@ -74,7 +74,8 @@ def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = 
     decodes ~100 peer states per epoch). A frame that fails any of them is decoded again by
     :func:`decode_state_py`, the reference, which names the error: the C code only says whether a
     frame is valid, and tests/test_frames_c.py holds it to the reference on real and mutated frames."""
-    got = _frames.state_frame(payload, SCHEMA_VERSION, envelope_m, ENVELOPE_M, MAX_VAR_M2)
+    env = float(envelope_m)  # C compares with a double; an envelope no double equals (an int past 2**53) -> the reference
+    got = _frames.state_frame(payload, SCHEMA_VERSION, env, ENVELOPE_M, MAX_VAR_M2) if env == envelope_m else None
     if got is None:
         return decode_state_py(payload, uav=uav, min_k=min_k, envelope_m=envelope_m)
     u, k, r, t, pos, cov, vel, delta_m, n_links, quat, ranges, bearings, kids, window, ascending = got
