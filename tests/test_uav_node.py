@@ -69,8 +69,8 @@ def test_newest_peer_epoch_follows_each_peers_newest_state():
 
 def test_cpu_policy_batch_reaches_the_threads_started_after_it():
     """--cpu-policy batch (the default) puts the node's thread, and the threads it starts afterwards
-    (Zenoh's runtime, the pumps), in SCHED_BATCH; normal leaves SCHED_OTHER. In a child process:
-    the policy must not leak into the test runner."""
+    (Zenoh's runtime, the pumps), in SCHED_BATCH with a 50 ms GIL switch interval; normal leaves
+    SCHED_OTHER and Python's interval. In a child process: the policy must not leak into the runner."""
     import os
     import subprocess
     import sys
@@ -81,9 +81,12 @@ def test_cpu_policy_batch_reaches_the_threads_started_after_it():
             "set_cpu_policy(a.cpu_policy, logging.getLogger())\n"
             "seen = []\n"
             "t = threading.Thread(target=lambda: seen.append(os.sched_getscheduler(0))); t.start(); t.join()\n"
-            "print(os.sched_getscheduler(0), seen[0])\n")
+            "print(os.sched_getscheduler(0), seen[0], __import__('sys').getswitchinterval())\n")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
-    for extra, want in (([], os.SCHED_BATCH), (["--cpu-policy", "normal"], os.SCHED_OTHER)):
+    from services.uav_node.node import SWITCH_INTERVAL_S
+
+    for extra, want, swi in (([], os.SCHED_BATCH, SWITCH_INTERVAL_S), (["--cpu-policy", "normal"], os.SCHED_OTHER, sys.getswitchinterval())):
         out = subprocess.run([sys.executable, "-c", code, *extra], capture_output=True, text=True, env=env, timeout=60)
         assert out.returncode == 0, out.stderr
-        assert out.stdout.split() == [str(want), str(want)]
+        policy, thread_policy, interval = out.stdout.split()
+        assert (int(policy), int(thread_policy)) == (want, want) and abs(float(interval) - swi) < 1e-9
