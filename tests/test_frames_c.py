@@ -205,3 +205,10 @@ def test_envelope_that_is_not_a_double_gets_the_references_verdict():
         frames.decode_state(p, envelope_m=2**53 + 3)
     assert e.value.reason == "envelope"
     assert frames.decode_state(p, envelope_m=2**53 + 4).uav == frames.decode_state_py(p, envelope_m=2**53 + 4).uav
+
+
+def test_envelope_beyond_the_doubles_gets_the_references_verdict():
+    """An int envelope too large for a double (float() raises OverflowError) also goes to the
+    reference, which compares with the int itself, instead of failing the decode."""
+    p = frames.encode_state(_random_state(np.random.default_rng(4)))
+    assert frames.decode_state(p, envelope_m=10**400).uav == frames.decode_state_py(p, envelope_m=10**400).uav

@@ -74,7 +74,10 @@ def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = 
     decodes ~100 peer states per epoch). A frame that fails any of them is decoded again by
     :func:`decode_state_py`, the reference, which names the error: the C code only says whether a
     frame is valid, and tests/test_frames_c.py holds it to the reference on real and mutated frames."""
-    env = float(envelope_m)  # C compares with a double; an envelope no double equals (an int past 2**53) -> the reference
+    try:
+        env = float(envelope_m)  # C compares with a double; an envelope no double equals (an int past 2**53) -> the reference
+    except OverflowError:  # an int beyond the doubles: NaN equals nothing, so the reference too
+        env = math.nan
     got = _frames.state_frame(payload, SCHEMA_VERSION, env, ENVELOPE_M, MAX_VAR_M2) if env == envelope_m else None
     if got is None:
         return decode_state_py(payload, uav=uav, min_k=min_k, envelope_m=envelope_m)
