@@ -147,7 +147,7 @@ def _mutate(rng: np.random.Generator, payload: bytes) -> bytes:
 
 
 def test_mutated_frames_get_the_references_verdict():
-    """~20,000 frames mutated at random (single and repeated mutations): C's verdict is the
+    """~14,000 frames mutated at random (single and repeated mutations): C's verdict is the
     reference's every time, and an accepted frame's values are the reference's bit for bit."""
     rng = np.random.default_rng(7)
     valid = invalid = 0

@@ -215,6 +215,10 @@ def test_dropout_and_rejoin(smoke, drop, truth):
     assert peers[t >= RESTART_T + 1][:, others, j].all()
     # the restarted node bootstrapped from its peers' states, queried over Zenoh
     log = (drop["dir"] / "logs" / "uav2.log").read_text()
+    # every node, forked from the zygote at the start or restarted, ran with --cpu-policy batch
+    for name in ("uav1.log", "uav2.log"):
+        ups = re.findall(r"UAV \d+ up: .*cpu (.*)", (drop["dir"] / "logs" / name).read_text())
+        assert ups and all(u == "batch (switch 50 ms)" for u in ups), (name, ups)
     m = re.search(r"rejoin True.*?bootstrapping at epoch (\d+) from peers \[([\d, ]+)\]", log, re.S)
     assert m and int(m.group(1)) == int(np.argmax(t >= RESTART_T)) + 1, log[-1500:]
     assert sorted(map(int, m.group(2).split(","))) == [u for u in uavs if u != 2]

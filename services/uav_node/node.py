@@ -77,11 +77,13 @@ def set_cpu_policy(policy: str, log) -> None:
     * SCHED_BATCH for this thread and every thread it starts afterwards (Zenoh's, the pumps): the
       scheduler lets a batch process run out its time slice instead of switching to each thread
       that wakes up (a node of a 100-UAV swarm is woken by ~100 peer states per epoch, and so are
-      all the others). 100-UAV scale launch, 3 A/B pairs: UAV CPU -4.5 %, wall -4.5 %.
+      all the others). 100-UAV scale launch, 3 A/B pairs: UAV CPU -4.0 %, wall -4.1 %.
     * The GIL switch interval 50 ms (Python's default 5 ms): the state pump decodes a peer state in
       ~15 µs and gives the GIL back; the longer interval only stops an idle pump's periodic wake-up
-      (Zenoh's recv checks for signals 10 times a second) from forcing the estimator off the GIL
-      mid-solve. 4 A/B pairs on top of SCHED_BATCH: UAV CPU -3.2 %, wall -2.7 %, each pair faster.
+      (a pump blocked in Zenoh's recv wakes 10 times a second: its context switches, measured)
+      from forcing the estimator off the GIL mid-solve. 4 interleaved A/B pairs on top of
+      SCHED_BATCH: UAV CPU -3.2 %, wall -2.7 %, each pair faster (a gain about the size of the
+      drift between separate experiments).
 
     Call before the Zenoh session opens (its threads inherit the policy). Best effort: where
     SCHED_BATCH cannot be set, a warning and the default policy."""
@@ -91,7 +93,17 @@ def set_cpu_policy(policy: str, log) -> None:
     try:
         os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
     except (AttributeError, OSError) as e:
-        log.warning("scheduling policy SCHED_BATCH not set (%s): running with the default policy", e)
+        log.warning("scheduling policy SCHED_BATCH not set (%s): the default policy (the 50 ms switch interval is set)", e)
+
+
+def cpu_policy_now() -> str:
+    """The calling thread's policy as set_cpu_policy leaves it, e.g. ``batch (switch 50 ms)``."""
+    names = {getattr(os, "SCHED_BATCH", None): "batch", getattr(os, "SCHED_OTHER", None): "normal"}
+    try:
+        policy = names.get(os.sched_getscheduler(0), "other")
+    except (AttributeError, OSError):
+        policy = "unknown"
+    return f"{policy} (switch {sys.getswitchinterval() * 1e3:.0f} ms)"
 
 
 class Node:
@@ -174,8 +186,8 @@ class Node:
         self.pub_est = self.s.declare_publisher(keys.uav(self.run, self.uav, "estimate"), congestion_control=bl)
         self.pub_links = self.s.declare_publisher(keys.uav(self.run, self.uav, "links"), congestion_control=bl)
         self.token = self.s.liveliness().declare_token(keys.alive(self.run, "uav", self.uav))
-        self.log.info("UAV %d up: algo %s, rounds %d, rejoin %s, code %s", self.uav, a.algo, self.rounds, a.rejoin,
-                      self.code)
+        self.log.info("UAV %d up: algo %s, rounds %d, rejoin %s, code %s, cpu %s", self.uav, a.algo, self.rounds, a.rejoin,
+                      self.code, cpu_policy_now())
 
     # -- inbox handling (light: decode + buffer) -------------------------------------------
     def handle(self, tag, item):

@@ -70,8 +70,8 @@ def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = 
                  envelope_m: float = ENVELOPE_M) -> NodeState:
     """Binary state frame -> NodeState; WireError(malformed|version|invalid|envelope|covariance|wrong_uav|stale).
 
-    The checks and the parse run in C (``_frames.state_frame``, ~1 µs; a node of a 100-UAV swarm
-    decodes ~100 peer states per epoch). A frame that fails any of them is decoded again by
+    The checks and the parse run in C (``_frames.state_frame``: ~3 µs of the ~11 µs a decoded state
+    costs; a node of a 100-UAV swarm decodes ~100 peer states per epoch). A frame that fails any of them is decoded again by
     :func:`decode_state_py`, the reference, which names the error: the C code only says whether a
     frame is valid, and tests/test_frames_c.py holds it to the reference on real and mutated frames."""
     try:
