@@ -71,9 +71,10 @@ def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = 
     """Binary state frame -> NodeState; WireError(malformed|version|invalid|envelope|covariance|wrong_uav|stale).
 
     The checks and the parse run in C (``_frames.state_frame``: ~3 µs of the ~11 µs a decoded state
-    costs; a node of a 100-UAV swarm decodes ~100 peer states per epoch). A frame that fails any of them is decoded again by
-    :func:`decode_state_py`, the reference, which names the error: the C code only says whether a
-    frame is valid, and tests/test_frames_c.py holds it to the reference on real and mutated frames."""
+    costs; a node of a 100-UAV swarm decodes ~100 peer states per epoch). A frame that fails any of
+    them is decoded again by :func:`decode_state_py`, the reference, which names the error: the C
+    code only says whether a frame is valid, and tests/test_frames_c.py holds it to the reference
+    on real and mutated frames."""
     try:
         env = float(envelope_m)  # C compares with a double; an envelope no double equals (an int past 2**53) -> the reference
     except OverflowError:  # an int beyond the doubles: NaN equals nothing, so the reference too
@@ -81,14 +82,8 @@ def decode_state(payload: bytes, *, uav: int | None = None, min_k: int | None = 
     got = _frames.state_frame(payload, SCHEMA_VERSION, env, ENVELOPE_M, MAX_VAR_M2) if env == envelope_m else None
     if got is None:
         return decode_state_py(payload, uav=uav, min_k=min_k, envelope_m=envelope_m)
-    u, k, r, t, pos, cov, vel, delta_m, n_links, quat, ranges, bearings, kids, window, ascending = got
-    check_scope(u, k, uav, min_k)
-    st = NodeState(uav=u, k=k, r=r, t=t, pos=np.array(pos), pos_cov=np.array(cov).reshape(3, 3), vel=np.array(vel),
-                   delta_m=delta_m, ranges=ranges, quat=None if quat is None else np.array(quat), n_links=n_links,
-                   traj=dict(zip(kids, np.array(window).reshape(-1, 3))) if kids else {}, bearings=bearings)
-    if ascending and bearings:
-        _bearing_views(st, payload)
-    return st
+    check_scope(got[0], got[1], uav, min_k)
+    return _node_state(payload, *got)
 
 
 def decode_state_py(payload: bytes, *, uav: int | None = None, min_k: int | None = None,
@@ -124,23 +119,28 @@ def decode_state_py(payload: bytes, *, uav: int | None = None, min_k: int | None
     if m and not (max(map(abs, az)) <= math.pi and max(map(abs, el)) <= math.pi / 2 and min(sg) > 0):
         raise WireError("invalid", "bearing out of range (|az| <= pi, |el| <= pi/2, sigma > 0)")
     check_scope(u, k, uav, min_k)
-    traj = np.array(fx[o_w:]).reshape(w, 3)  # one array; each epoch's position is a row of it
-    st = NodeState(uav=u, k=k, r=r, t=fx[0], pos=np.array(fx[1:4]), pos_cov=np.array(fx[4:13]).reshape(3, 3),
-                   vel=np.array(fx[13:16]), delta_m=fx[16], ranges=dict(zip(ids[:n], rng)),
-                   quat=np.array(q) if any(q) else None, n_links=int(fx[17]),
-                   traj=dict(zip(kids, traj)), bearings=dict(zip(ids[n:n + m], zip(az, el, sg))))
     bid = ids[n:n + m]
-    if m and type(payload) is bytes and all(a < b for a, b in zip(bid, bid[1:])):
+    return _node_state(payload, u, k, r, fx[0], fx[1:4], fx[4:13], fx[13:16], fx[16], int(fx[17]),
+                       q if any(q) else None, dict(zip(ids[:n], rng)), dict(zip(bid, zip(az, el, sg))), kids, fx[o_w:],
+                       all(a < b for a, b in zip(bid, bid[1:])))
+
+
+def _node_state(payload, u, k, r, t, pos, cov, vel, delta_m, n_links, quat, ranges, bearings, kids, window,
+                ascending) -> NodeState:
+    """The NodeState of a valid frame from its values (both decoders): pos, vel (3), cov (9, row-major),
+    quat (4) or None, window (3 per epoch of kids) as float sequences. ``ascending``: the bearings are
+    in the encoder's order (by target, no repeats), so ``bearing_rows`` are the frame's bytes as they
+    lie (read-only views; the same numbers its cached property would build)."""
+    st = NodeState(uav=u, k=k, r=r, t=t, pos=np.array(pos), pos_cov=np.array(cov).reshape(3, 3), vel=np.array(vel),
+                   delta_m=delta_m, ranges=ranges, quat=None if quat is None else np.array(quat), n_links=n_links,
+                   traj=dict(zip(kids, np.array(window).reshape(-1, 3))) if kids else {}, bearings=bearings)
+    if bearings and ascending and type(payload) is bytes and _LITTLE:
         _bearing_views(st, payload)
     return st
 
 
 def _bearing_views(st: NodeState, payload: bytes) -> None:
-    """Set ``st.bearing_rows`` to the frame's bytes as they lie (read-only views; the same numbers
-    its cached property would build), for a valid frame whose bearings are in the encoder's order
-    (by target, no repeats)."""
-    if not _LITTLE:
-        return
+    """``st.bearing_rows`` as views of the frame's bytes (see :func:`_node_state`)."""
     n, m, w = _STATE_HDR.unpack_from(payload)[5:]
     nf = _STATE_NF + n + 3 * m + 3 * w
     st.__dict__["bearing_rows"] = (np.frombuffer(payload, np.int64, m, _STATE_HDR.size + 8 * (nf + n)),
