@@ -216,7 +216,8 @@ def test_passive_range_difference_by_hand(converted):
     # 5 before t_start, 37 breaking the triangle inequality by > 3 sigma
     s = summ["tdoa"]
     assert (s["logged_rows"], s["duplicates_removed"], s["kept"]) == (980, 249, 689)
-    assert s["dropped"] == {"outside_span": 5, "not_a_listener": 0, "invalid": 0, "clock_ratio": 0, "triangle": 37}
+    assert s["dropped"] == {"outside_span": 5, "not_a_listener": 0, "invalid": 0, "clock_ratio": 0, "triangle": 37,
+                            "no_ids": 0, "robot_not_here": 0}
     # the counter wrap (2**32 ticks = 67.2 ms) is undone: ~15 % of the rows have rx2 - rx1 one wrap
     # long; without it they would be ~2e7 m off and dropped. Kept rows are good to ~0.17 m (robust)
     e = d["fault_err"]

@@ -64,7 +64,11 @@ def _passive_row(listener: int, init: int, resp: int, t: float, rx1: float) -> l
 
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory) -> Path:
-    src = tmp_path_factory.mktemp("miluv") / "synthetic_0"
+    return build_folder(tmp_path_factory.mktemp("miluv") / "synthetic_0")
+
+
+def build_folder(src: Path) -> Path:
+    """The synthetic experiment (also the base of tests/test_miluv_variants.py), written at ``src``."""
     cfg = src / "config"
     for d in (cfg / "uwb", cfg / "height", cfg / "imu" / "ifo001", cfg / "imu" / "ifo002", src / "ifo001", src / "ifo002"):
         d.mkdir(parents=True)

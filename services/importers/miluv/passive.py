@@ -23,6 +23,7 @@ from swarmnav.dataset import FaultKind
 from swarmnav.errors import DatasetError
 
 from .constants import ANCHOR_NODE_OFFSET, PASSIVE_MAX_SKEW, PASSIVE_WRAP_NS, SPEED_OF_LIGHT_M_PER_NS
+from .ranges import unknown_id
 from .readers import read_csv
 from .series import Span
 from .truth import TagTruth
@@ -58,15 +59,18 @@ class PassiveLog:
 
     seen: dict[tuple[int, int, int, float], tuple[float, float]] = field(default_factory=dict)
     dropped: dict[str, int] = field(default_factory=lambda: dict.fromkeys(
-        ("outside_span", "not_a_listener", "invalid", "clock_ratio", "triangle"), 0))
+        ("outside_span", "not_a_listener", "invalid", "clock_ratio", "triangle", "no_ids", "robot_not_here"), 0))
     n_logged: int = 0
     n_dup: int = 0
 
 
 def read_passive(src: Path, robots: list[tuple[str, int]], tag_owner: dict[int, int], span: Span,
-                 sigma_nominal: float, used_files: list[Path]) -> PassiveLog | None:
-    """Every robot's ``uwb_passive.csv``, checked and deduplicated; None if no robot has the file."""
+                 sigma_nominal: float, used_files: list[Path], absent_tags: dict[int, str] | None = None
+                 ) -> PassiveLog | None:
+    """Every robot's ``uwb_passive.csv``, checked and deduplicated; None if no robot has the file.
+    Rows with a tag of a robot without a folder here (``absent_tags``) are counted and dropped."""
     log, any_file = PassiveLog(), False
+    absent_tags = absent_tags or {}
     for name, _ in robots:
         p = src / name / "uwb_passive.csv"
         if not p.is_file():
@@ -78,12 +82,18 @@ def read_passive(src: Path, robots: list[tuple[str, int]], tag_owner: dict[int, 
         for i in range(len(c["timestamp_n"])):
             log.n_logged += 1
             ids = (c["my_id"][i], c["from_id"][i], c["to_id"][i])
-            if not all(math.isfinite(x) and x == int(x) for x in ids):
+            if not all(math.isfinite(x) for x in ids):
+                log.dropped["no_ids"] += 1
+                continue
+            if not all(x == int(x) for x in ids):
                 raise DatasetError(f"{p}: row {i + 2}: my_id/from_id/to_id not integers {ids}")
             key = (*(int(x) for x in ids), float(c["timestamp_n"][i]))
+            if any(tg not in tag_owner and tg in absent_tags for tg in key[:3]):
+                log.dropped["robot_not_here"] += 1
+                continue
             for tg in key[:3]:
                 if tg not in tag_owner:
-                    raise DatasetError(f"{p}: row {i + 2}: unknown tag/anchor id {tg} (tags.yaml/anchors.yaml)")
+                    raise unknown_id(p, i + 2, tg, tag_owner)
             z, sd = float(rdiff[i]), float(c["std"][i])
             why = _drop_reason(key, z, float(c["range_n"][i]), float(ratio[i]), sd, tag_owner, span, sigma_nominal)
             if why:

@@ -16,7 +16,7 @@ from swarmnav.dataset import FaultKind, epoch_of
 from swarmnav.errors import DatasetError
 
 from .constants import ANCHOR_NODE_OFFSET
-from .readers import read_csv
+from .readers import read_csv, warn
 from .series import Span
 from .truth import TagTruth
 
@@ -31,11 +31,24 @@ class RangeLog:
     seen: dict[tuple[float, int, int], tuple] = field(default_factory=dict)
     n_logged: int = 0
     n_dup: int = 0
+    n_bad_ids: int = 0  # rows without a timestamp or ids (empty/NaN): dropped
+    absent: dict[str, int] = field(default_factory=dict)  # robot without a folder -> rows with one of its tags
 
 
-def read_ranges(src: Path, robots: list[tuple[str, int]], tag_owner: dict[int, int], used_files: list[Path]) -> RangeLog:
-    """Every robot's ``uwb_range.csv``, deduplicated (a copy must carry the same values)."""
+def unknown_id(p: Path, line: int, tg: int, tag_owner: dict[int, int]) -> DatasetError:
+    anchors = sorted(t for t, n in tag_owner.items() if n >= ANCHOR_NODE_OFFSET)
+    tags = sorted(t for t, n in tag_owner.items() if n < ANCHOR_NODE_OFFSET)
+    return DatasetError(f"{p}: row {line}: UWB id {tg} is neither an anchor of the experiment's constellation "
+                        f"({anchors}, config/uwb/anchors.yaml + anchor_constellation in config/experiments.csv) nor a tag "
+                        f"of a robot ({tags}, config/uwb/tags.yaml): is the config/ folder the one of this MILUV release?")
+
+
+def read_ranges(src: Path, robots: list[tuple[str, int]], tag_owner: dict[int, int], used_files: list[Path],
+                absent_tags: dict[int, str] | None = None) -> RangeLog:
+    """Every robot's ``uwb_range.csv``, deduplicated (a copy must carry the same values). Rows with a
+    tag of a robot listed in tags.yaml but without a folder here (``absent_tags``) are counted and dropped."""
     log = RangeLog()
+    absent_tags = absent_tags or {}
     for name, _ in robots:
         p = src / name / "uwb_range.csv"
         if not p.is_file():
@@ -45,12 +58,19 @@ def read_ranges(src: Path, robots: list[tuple[str, int]], tag_owner: dict[int, i
         for i in range(len(c["timestamp"])):
             log.n_logged += 1
             ts, fr, to = float(c["timestamp"][i]), c["from_id"][i], c["to_id"][i]
-            if not (math.isfinite(fr) and math.isfinite(to)) or fr != int(fr) or to != int(to):
+            if not (math.isfinite(fr) and math.isfinite(to) and math.isfinite(ts)):
+                log.n_bad_ids += 1
+                continue
+            if fr != int(fr) or to != int(to):
                 raise DatasetError(f"{p}: row {i + 2}: from_id/to_id not integers ({fr}, {to})")
             fr, to = int(fr), int(to)
+            gone = [absent_tags[tg] for tg in (fr, to) if tg not in tag_owner and tg in absent_tags]
+            if gone:
+                log.absent[gone[0]] = log.absent.get(gone[0], 0) + 1
+                continue
             for tg in (fr, to):
                 if tg not in tag_owner:
-                    raise DatasetError(f"{p}: row {i + 2}: unknown tag/anchor id {tg} (tags.yaml/anchors.yaml)")
+                    raise unknown_id(p, i + 2, tg, tag_owner)
             key = (ts, min(fr, to), max(fr, to))
             vals = (c["range"][i], c["gt_range"][i], c["bias"][i], c["std"][i])
             if key in log.seen:
@@ -105,6 +125,7 @@ def ranges_table(log: RangeLog, tag_owner: dict[int, int], span: Span, summary: 
     inter = tab["b"] < ANCHOR_NODE_OFFSET
     summary["ranges"] = {
         "logged_rows": log.n_logged, "duplicates_removed": log.n_dup, "transactions": len(log.seen), "kept": int(len(R)),
+        "rows_without_ids": log.n_bad_ids, "rows_with_robots_not_here": dict(log.absent),
         "inter_uav": int(inter.sum()), "to_anchor": int((~inter).sum()), "dropped": dropped,
         "sigma_median_m": round(sigma_nominal, 4),
         "nlos_real_rows": int(faulty.sum()), "nlos_real_inter_uav": int((faulty & inter).sum()),
@@ -131,3 +152,40 @@ def range_truth_summary(tab: dict[str, np.ndarray], gt_range: np.ndarray, truth:
                                                         "max": round(float(dd.max()), 4)}
     ok = np.isfinite(gt_range)
     summary["ranges"]["our_truth_minus_gt_range_m"] = {"max_abs": round(float(np.abs(d_now[ok] - gt_range[ok]).max()), 4)}
+
+
+GT_RANGE_TOL_M = 0.10  # median |our truth distance - the recording's gt_range| above which the config is wrong
+GT_RANGE_WARN_M = 0.02
+
+
+def check_config_against_gt_range(tab: dict[str, np.ndarray], gt_range: np.ndarray, truth: TagTruth, cfg: Path,
+                                  exp: dict[str, str], summary: dict) -> None:
+    """The config against the recording itself: MILUV computed each range's ``gt_range`` from mocap
+    with the experiment's true anchor positions and lever arms, so the same distance from our mocap
+    truth and config/ must agree (it does to 0.0 m on cirObstacles_3_random_0). A wrong
+    anchor_constellation, anchors.yaml, tags.yaml or a time base shifted between uwb_range.csv and
+    mocap.csv shows up here and would otherwise give quietly wrong anchors/labels: refused,
+    naming the files."""
+    ok = np.isfinite(gt_range)
+    if not ok.any():
+        summary["ranges"]["config_check"] = "skipped: no gt_range in uwb_range.csv"
+        return
+    d = np.abs(truth.distance(tab["a"], tab["tag_a"], tab["b"], tab["tag_b"], tab["t"]) - gt_range)
+    groups = {f"anchor {int(b) - ANCHOR_NODE_OFFSET}": ok & (tab["b"] == b)
+              for b in np.unique(tab["b"][tab["b"] >= ANCHOR_NODE_OFFSET])}
+    groups["inter-UAV"] = ok & (tab["b"] < ANCHOR_NODE_OFFSET)
+    med = {g: (round(float(np.median(d[m])), 4), int(m.sum())) for g, m in groups.items() if m.sum() >= 3}
+    summary["ranges"]["config_check"] = {g: {"median_abs_m": v, "rows": n} for g, (v, n) in med.items()}
+    bad = {g: v for g, v in med.items() if v[0] > GT_RANGE_TOL_M}
+    if bad:
+        which = "; ".join(f"{g}: median {v:.2f} m over {n} ranges" for g, (v, n) in bad.items())
+        raise DatasetError(
+            f"the config does not match the recording: the tag-to-tag/anchor distance from mocap and {cfg} differs from "
+            f"uwb_range.csv's gt_range (which MILUV computed with the right geometry) — {which}. Check the experiment's "
+            f"anchor_constellation ({exp.get('anchor_constellation')!r}) in {cfg / 'experiments.csv'}, the constellation in "
+            f"{cfg / 'uwb' / 'anchors.yaml'}, the lever arms in {cfg / 'uwb' / 'tags.yaml'}, and that every file has the "
+            "same time base")
+    overall = float(np.median(d[ok]))
+    if overall > GT_RANGE_WARN_M:
+        warn(summary, f"distances from mocap + config differ from uwb_range.csv's gt_range by median {overall:.3f} m "
+                      f"(usually 0): check {cfg}")

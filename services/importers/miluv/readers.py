@@ -26,8 +26,8 @@ def read_csv(path: Path, columns: list[str]) -> dict[str, np.ndarray]:
     missing file/column or a value that is not a number.
     """
     if not path.is_file():
-        raise DatasetError(f"{path}: missing file")
-    with open(path, newline="") as f:
+        raise DatasetError(f"{path}: missing file{compressed_hint(path)}")
+    with open(path, newline="", encoding="utf-8-sig") as f:  # -sig: a byte-order mark is not part of the first name
         reader = csv.reader(f)
         try:
             header = [h.strip() for h in next(reader)]
@@ -53,6 +53,13 @@ def read_csv(path: Path, columns: list[str]) -> dict[str, np.ndarray]:
             out.append(vals)
     arr = np.array(out, float).reshape(-1, len(columns))
     return {c: arr[:, j] for j, c in enumerate(columns)}
+
+
+def compressed_hint(path: Path) -> str:
+    for ext in (".gz", ".bz2", ".xz", ".zip"):
+        if path.with_name(path.name + ext).is_file():
+            return f" (found {path.name + ext}: decompress it first, the importer reads plain .csv as MILUV ships them)"
+    return ""
 
 
 def read_yaml(path: Path) -> dict:
@@ -127,6 +134,11 @@ def clean_time_series(t: np.ndarray, cols: dict[str, np.ndarray], where: str, su
     return t[keep], {k: v[keep] for k, v in cols.items()}
 
 
+def warn(summary: dict, msg: str) -> None:
+    """A warning for the user: kept in the summary and printed by ``import-miluv`` on stderr."""
+    summary.setdefault("warnings", []).append(msg)
+
+
 def robot_folders(src: Path) -> list[tuple[str, int]]:
     """[(folder name, UAV id)] of the ``ifo00N`` folders, sorted by name."""
     out = []
@@ -135,21 +147,40 @@ def robot_folders(src: Path) -> list[tuple[str, int]]:
         if d.is_dir() and m:
             out.append((d.name, int(m.group(1))))
     if not out:
-        raise DatasetError(f"{src}: no robot folders (ifo001, ifo002, ...) — is this a MILUV experiment folder?")
+        raise DatasetError(f"{src}: no robot folders (ifo001, ifo002, ...) — is this a MILUV experiment folder? "
+                           "Give the folder of one experiment, e.g. .../data/default_3_random_0")
     ids = [i for _, i in out]
     if len(set(ids)) != len(ids) or min(ids) < 1 or max(ids) >= ANCHOR_NODE_OFFSET:
         raise DatasetError(f"{src}: robot ids {ids} must be unique and in 1..{ANCHOR_NODE_OFFSET - 1}")
     return out
 
 
-def experiment_row(src: Path) -> dict[str, str]:
-    """The row of ``config/experiments.csv`` whose ``experiment`` is the folder's name."""
-    p = src / "config" / "experiments.csv"
-    if not p.is_file():
-        raise DatasetError(f"{p}: missing (needed for the anchor constellation)")
-    with open(p, newline="") as f:
+def find_config(src: Path, config_dir: str | Path | None = None) -> Path:
+    """MILUV's ``config/`` folder: the one given, else ``SRC/config`` (an experiment copied with its
+    config), ``SRC/../config`` or ``SRC/../../config`` (the devkit's layout: ``miluv/data/<exp>/`` beside
+    ``miluv/config/``) — the first that has ``experiments.csv``."""
+    if config_dir is not None:
+        cfg = Path(config_dir)
+        if not (cfg / "experiments.csv").is_file():
+            raise DatasetError(f"--config-dir {cfg}: no experiments.csv there (expected MILUV's config/ folder: "
+                               "experiments.csv, uwb/anchors.yaml, uwb/tags.yaml, height/bias.yaml, imu/ifo00N/px4_imu.yaml)")
+        return cfg
+    tried = [src / "config", src.parent / "config", src.parent.parent / "config"]
+    for cfg in tried:
+        if (cfg / "experiments.csv").is_file():
+            return cfg
+    raise DatasetError(f"{src}: MILUV's config/ folder not found (looked for experiments.csv in "
+                       f"{', '.join(str(c) for c in tried)}); give it with --config-dir "
+                       "(the devkit's config/ folder: github.com/decargroup/miluv)")
+
+
+def experiment_row(cfg: Path, name: str) -> dict[str, str]:
+    """The row of ``config/experiments.csv`` whose ``experiment`` is ``name``."""
+    p = cfg / "experiments.csv"
+    with open(p, newline="", encoding="utf-8-sig") as f:
         rows = list(csv.DictReader(f))
     for r in rows:
-        if r.get("experiment") == src.name:
-            return r
-    raise DatasetError(f"{p}: experiment {src.name!r} not listed (the source folder must keep its MILUV name)")
+        if (r.get("experiment") or "").strip() == name:
+            return {k.strip(): (v or "").strip() for k, v in r.items() if k is not None}
+    raise DatasetError(f"{p}: experiment {name!r} not listed (the source folder must keep its MILUV name, "
+                       "or give the name with --experiment)")
