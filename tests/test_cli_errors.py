@@ -60,3 +60,15 @@ def test_every_subcommand_help_has_examples(cmd):
     r = subprocess.run([sys.executable, "-m", "services.cli", cmd, "--help"], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and "example" in r.stdout and f"swarmnav {cmd} " in r.stdout.split("example", 1)[1], r.stdout
     assert "Thin adapter" not in r.stdout and "``" not in r.stdout  # no internals, no RST markup
+
+
+def test_output_piped_into_a_reader_that_stops_is_no_traceback(tmp_path):
+    """`swarmnav import-miluv ... | head -1`: the reader closes the pipe while the summary is printed."""
+    from test_miluv_synthetic import build_folder
+
+    src = build_folder(tmp_path / "synthetic_0")
+    p = subprocess.Popen([sys.executable, "-m", "services.cli", "import-miluv", str(src), "--out", str(tmp_path / "ds")],
+                         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    p.stdout.close()  # as `head -1` does once it has its line (here before any: no race with the pipe buffer)
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=60) == 141 and "Traceback" not in err and "BrokenPipe" not in err
