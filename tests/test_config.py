@@ -1,5 +1,6 @@
 """Scenario configs: the shipped files carry the paper's §3.1 numbers; broken files fail naming the field."""
 
+import re
 from pathlib import Path
 
 import pytest
@@ -72,6 +73,16 @@ BROKEN = {
     "not_toml": ('[scenario\nname = "x"\n', ["not valid TOML"]),
     "bad_manoeuvre": (f'base = "{PAPER}"\n[trajectory]\nmanoeuvres = [{{ kind = "loop", duration_s = 3.0 }}]\n',
                       ["trajectory.manoeuvres.0.kind"]),
+    # hold-out review: these were accepted and then crashed in the simulator or were silently wrong
+    "infinite_duration": (f'base = "{PAPER}"\n[scenario]\nduration_s = inf\n', ["scenario.duration_s", "finite"]),
+    "nan_bias": (f'base = "{PAPER}"\n[faults.interference]\nbias_m = [1.0, nan]\n', ["faults.interference.bias_m", "finite"]),
+    "reversed_bias": (f'base = "{PAPER}"\n[faults.interference]\nbias_m = [8.0, 1.0]\n', ["faults.interference", "bias_m"]),
+    "reversed_error": (f'base = "{PAPER}"\n[[faults.module_failure]]\nuav = 3\nstart_s = 1.0\nend_s = 2.0\n'
+                       'error_m = [150.0, 20.0]\n', ["module_failure", "error_m"]),
+    "outage_unknown_uav": (f'base = "{PAPER}"\n[[faults.gnss_outage]]\nuavs = [4, 42]\nstart_s = 1.0\nend_s = 2.0\n',
+                           ["gnss_outage[0]", "[42]", "1..18"]),
+    "negative_gnss_sigma": (f'base = "{PAPER}"\n[sensors.gnss.slave]\npos_sigma_m = [-5.0, 5.0, 8.0]\nvel_sigma_mps = 0.2\n',
+                            ["sensors.gnss.slave.pos_sigma_m.0", "greater than or equal to 0"]),
 }
 
 
@@ -92,6 +103,16 @@ def test_base_loop(tmp_path):
     (tmp_path / "b.toml").write_text('base = "a.toml"\n')
     with pytest.raises(ConfigError, match="loops"):
         load_config(tmp_path / "a.toml")
+
+
+def test_unreadable_config_is_a_config_error(tmp_path):
+    """A directory, a binary file or a base naming a directory: one clear error, no traceback."""
+    (tmp_path / "bin.toml").write_bytes(b"\xff\xfe\x00 not text")
+    (tmp_path / "b.toml").write_text('base = "."\n')
+    for f, says in [(tmp_path, "is a directory"), (tmp_path / "bin.toml", "not a text (UTF-8) file"),
+                    (tmp_path / "b.toml", "is a directory")]:
+        with pytest.raises(ConfigError, match=re.escape(says)):
+            load_config(f)
 
 
 def test_derived_file_overrides_base(tmp_path):

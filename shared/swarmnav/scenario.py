@@ -24,7 +24,9 @@ Range2 = tuple[float, float]
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: an inf or nan anywhere in a scenario (e.g. duration_s = inf) is refused
+    # naming its field, instead of failing deep inside the simulator
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class ScenarioMeta(_Model):
@@ -34,6 +36,12 @@ class ScenarioMeta(_Model):
     duration_s: PositiveFloat
     epoch_dt_s: PositiveFloat = 1.0
     imu_rate_hz: PositiveFloat = 100.0
+
+
+def _check_range(name: str, r: Range2) -> None:
+    """A [lo, hi] draw range (uniform): lo <= hi, else the simulator's draw fails."""
+    if r[0] > r[1]:
+        raise ValueError(f"{name}: lower bound {r[0]} must not exceed upper bound {r[1]} (a [lo, hi] range)")
 
 
 class Origin(_Model):
@@ -144,7 +152,7 @@ class ImuSpec(_Model):
 
 class GnssSpec(_Model):
     rate_hz: PositiveFloat = 1.0
-    pos_sigma_m: tuple[float, float, float]  # white, E N U
+    pos_sigma_m: tuple[NonNegFloat, NonNegFloat, NonNegFloat]  # white, E N U
     gm_sigma_m: NonNegFloat = 0.0  # first-order Gauss-Markov bias, per axis
     gm_tau_s: PositiveFloat = 120.0
     vel_sigma_mps: NonNegFloat
@@ -186,6 +194,11 @@ class Interference(_Model):
     bias_m: Range2 = (1.0, 8.0)
     noise_scale: PositiveFloat = 5.0
 
+    @model_validator(mode="after")
+    def _check(self) -> "Interference":
+        _check_range("bias_m", self.bias_m)
+        return self
+
 
 class ModuleFailure(_Model):
     """Fault 2: every range UAV `uav` takes part in is truth + U(error_m) (new draw each time)."""
@@ -194,6 +207,11 @@ class ModuleFailure(_Model):
     start_s: NonNegFloat
     end_s: NonNegFloat
     error_m: Range2 = (20.0, 150.0)
+
+    @model_validator(mode="after")
+    def _check(self) -> "ModuleFailure":
+        _check_range("error_m", self.error_m)
+        return self
 
 
 class StuckModule(_Model):
@@ -434,6 +452,11 @@ class Scenario(_Model):
         for d in self.faults.drift:
             if not all(1 <= u <= n for u in d.link) or d.link[0] == d.link[1]:
                 raise ValueError(f"faults.drift: link {d.link} is not a pair of distinct UAVs in 1..{n}")
+        for i, o in enumerate(self.faults.gnss_outage):
+            bad = [u for u in o.uavs if not 1 <= u <= n] if isinstance(o.uavs, list) else []
+            if bad:
+                raise ValueError(f"faults.gnss_outage[{i}]: uavs {bad} are not UAV ids in 1..{n} "
+                                 "(or use \"slaves\", \"masters\" or \"all\")")
         return self
 
     def uav_ids(self) -> list[int]:
