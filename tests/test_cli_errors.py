@@ -41,13 +41,21 @@ BROKEN_TOML = "[scenario\nname = 1\n"
     (["keys", "--uavs", "x-y", "--out", "{out}"], "expected ids like 1-18"),
     (["keys", "--uavs", "1-3", "--router-host", "999.1.1.1", "--out", "{out}"], "not an IP address or a DNS name"),
     (["keys", "--uavs", "1-3", "--port", "0", "--out", "{out}"], "not a TCP port"),
+    # hold-out review: an --out under a regular file, or a config that is a directory, was a traceback
+    (["simulate", "--config", "configs/smoke.toml", "--out", "{file}/x"], "is not a directory"),
+    (["simulate", "--config", "{tmp}", "--out", "{out}"], "is a directory, not a config file"),
+    (["evaluate", "--config", "configs/smoke.toml", "--out", "{file}"], "exists and is not a directory"),
+    (["launch", "--config", "configs/smoke.toml", "--out", "{file}/x"], "is not a directory"),
+    (["keys", "--uavs", "1-3", "--out", "{file}/x"], "is not a directory"),
+    (["calibrate", "--config", "configs/smoke.toml", "--out", "{file}/delta_l.json"], "exists and is not a directory"),
 ])
 def test_bad_input_is_refused_before_any_work(tmp_path, args, says):
     out = tmp_path / "out"
     broken = tmp_path / "broken.toml"
     broken.write_text(BROKEN_TOML)
     (tmp_path / "empty").mkdir()
-    argv = [a.format(out=out, tmp=tmp_path / "empty", broken=broken) for a in args]
+    (tmp_path / "file").write_text("a regular file\n")
+    argv = [a.format(out=out, tmp=tmp_path / "empty", broken=broken, file=tmp_path / "file") for a in args]
     r = subprocess.run([sys.executable, "-m", "services.cli", *argv], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2, (r.stdout, r.stderr)
     assert says in r.stderr and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr

@@ -57,6 +57,11 @@ def run(args) -> int:
         return _cross_validate(args)
     if not args.out:
         raise ConfigError("--config needs --out FILE (where to write Δl, e.g. configs/delta_l.json)")
+    from ._outdir import check_out_dir, make_out_dir
+
+    if Path(args.out).is_dir():
+        raise ConfigError(f"--out {args.out}: is a directory; give the JSON file to write, e.g. configs/delta_l.json")
+    check_out_dir(Path(args.out).parent)
     t0 = time.perf_counter()
     sc = load_config(args.config)
     seed = sc.scenario.seed if args.seed is None else args.seed
@@ -74,7 +79,7 @@ def run(args) -> int:
     if out.get("delta_l_m") is None:
         raise ConfigError("no ranges in the training window: cannot train Δl")
     out["config"] = Path(args.config).name
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    make_out_dir(Path(args.out).parent)
     Path(args.out).write_text(json.dumps(out, indent=1, sort_keys=True) + "\n")
     print(f"Δl = {out['delta_l_m']:.3f} m from {out['n_residuals']} residuals "
           f"({time.perf_counter() - t0:.1f} s) -> {args.out}")

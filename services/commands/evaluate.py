@@ -326,8 +326,9 @@ def run(args) -> int:
     t_wall = time.perf_counter()
     jobs, algos = _check_run_args(args)
     name, seeds, settings, cfg_sha, ds_given, cfg_path = _load_inputs(args)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    from ._outdir import make_out_dir
+
+    out = make_out_dir(args.out)
     handler = _setup_log(out)
     _SETTINGS = settings
     log.info("evaluate %s: algos=%s seeds=%s settings=%s", name, algos, seeds, settings)

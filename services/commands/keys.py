@@ -67,7 +67,9 @@ def run(args) -> int:
     check_host(args.router_host)
     if not 0 < args.port < 65536:
         raise SwarmnavError(f"--port {args.port}: not a TCP port")
-    out = Path(args.out)
+    from ._outdir import make_out_dir
+
+    out = make_out_dir(args.out)
     if out.exists() and any(out.iterdir()):
         raise SwarmnavError(f"--out {out} is not empty: identities are never overwritten; choose a new directory")
     ep = f"tls/{args.router_host}:{args.port}"

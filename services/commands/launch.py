@@ -198,8 +198,10 @@ def run(args) -> int:
     if seed < 0:
         raise SwarmnavError(f"--seed {seed}: seed must be >= 0")
     run_dir = Path(args.out) if args.out else default_run_dir(name)
-    prepare_run_dir(run_dir, args.force)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    from ._outdir import check_out_dir, make_out_dir
+
+    prepare_run_dir(check_out_dir(run_dir), args.force)
+    make_out_dir(run_dir)
     run_dir = run_dir.resolve()
     if args.config:
         t0 = time.perf_counter()

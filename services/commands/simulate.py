@@ -45,8 +45,11 @@ def run(args) -> int:
     sc = load_config(args.config, args.set)
     if args.seed is not None and args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
+    from ._outdir import check_out_dir, make_out_dir
+
+    check_out_dir(args.out)
     ds = simulate(sc, args.seed)
-    ds.write(args.out)
+    ds.write(make_out_dir(args.out))
     wall = time.perf_counter() - t0
     r = ds.tables["ranges"]
     faulty = int((abs(r["fault_err"]) > ds.meta.fault_threshold_for(r["sigma"])).sum())
