@@ -46,10 +46,32 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM in the command's own process: unwinds like Ctrl-C, so that worker pools are
+    terminated on the way out (``with Pool``) instead of being orphaned and computing on."""
+
+
+def _on_sigterm(main_pid: int):
+    import signal
+
+    def handler(signum, frame):
+        if os.getpid() != main_pid:  # a forked worker inherited this handler: die as by default
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+            return
+        raise Terminated()
+
+    return handler
+
+
 def main(argv: list[str] | None = None) -> int:
+    import signal
+
     from swarmnav.errors import SwarmnavError
 
     args = build_parser().parse_args(argv)
+    # launch installs its own SIGTERM/SIGINT handling for the swarm while it runs
+    signal.signal(signal.SIGTERM, _on_sigterm(os.getpid()))
     try:
         rc = int(args._run(args) or 0)
         sys.stdout.flush()  # here, so that a closed pipe is caught below rather than at interpreter exit
@@ -57,8 +79,13 @@ def main(argv: list[str] | None = None) -> int:
     except SwarmnavError as e:
         print(f"swarmnav {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except Terminated:
+        print(f"\nswarmnav {args.command}: terminated (SIGTERM): stopped before the end, its output is incomplete "
+              "(no report.json is written)", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
-        print(f"swarmnav {args.command}: interrupted", file=sys.stderr)
+        # on a line of its own (a progress bar may be half drawn); launch reports its own stop
+        print(f"\nswarmnav {args.command}: interrupted: stopped before the end, its output is incomplete (no report.json is written)", file=sys.stderr)
         return 130
     except BrokenPipeError:  # output piped into a reader that stopped (`| head`): no traceback, exit as SIGPIPE would
         sys.stdout = open(os.devnull, "w")  # noqa: SIM115  (the interpreter flushes stdout at exit)

@@ -329,6 +329,10 @@ def run(args) -> int:
     from ._outdir import make_out_dir
 
     out = make_out_dir(args.out)
+    # a report left by an earlier run in this directory must not pass for this one's if this run
+    # is interrupted or fails before writing its own (they are written together at the end)
+    for stale in ("report.json", "report.md", "evaluate.rrd"):
+        (out / stale).unlink(missing_ok=True)
     handler = _setup_log(out)
     _SETTINGS = settings
     log.info("evaluate %s: algos=%s seeds=%s settings=%s", name, algos, seeds, settings)
