@@ -45,7 +45,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .errors import DatasetError
 from .imu_source import IMU_ROW_GROUP, ImuInMemory
@@ -139,9 +139,9 @@ class DatasetMeta(_M):
     config: dict | None = None  # the resolved scenario config (simulated)
     config_sha256: str | None = None
     origin: GeoOrigin | None = None  # None = local frame without geodetic origin
-    t_start: float = 0.0
-    duration_s: float
-    epoch_dt_s: float
+    t_start: float = Field(0.0, allow_inf_nan=False)
+    duration_s: float = Field(gt=0, allow_inf_nan=False)  # > 0: a dataset of no epoch has nothing to score
+    epoch_dt_s: float = Field(gt=0, allow_inf_nan=False)
     nodes: list[Node]
     earth: Earth
     uwb_sigma_m: float
@@ -278,10 +278,19 @@ class Dataset:
         mp = path / "meta.json"
         if not mp.is_file():
             raise DatasetError(f"{path}: not a dataset directory (no meta.json); create one with `swarmnav simulate` or `swarmnav import-miluv`")
-        raw = json.loads(mp.read_text())
-        if raw.get("schema") != SCHEMA:
-            raise DatasetError(f"{mp}: unknown schema {raw.get('schema')!r}, expected {SCHEMA!r}")
-        meta = DatasetMeta.model_validate(raw)
+        try:
+            raw = json.loads(mp.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, ValueError) as e:
+            raise DatasetError(f"{mp}: cannot read the dataset's meta.json ({e}); re-create the dataset with "
+                               "`swarmnav simulate` or `swarmnav import-miluv`") from None
+        if not isinstance(raw, dict) or raw.get("schema") != SCHEMA:
+            got = raw.get("schema") if isinstance(raw, dict) else type(raw).__name__
+            raise DatasetError(f"{mp}: unknown schema {got!r}, expected {SCHEMA!r}")
+        try:
+            meta = DatasetMeta.model_validate(raw)
+        except ValidationError as e:
+            probs = "; ".join(f"field '{'.'.join(str(p) for p in err['loc'])}': {err['msg']}" for err in e.errors()[:5])
+            raise DatasetError(f"{mp}: invalid dataset meta ({e.error_count()} problem(s)): {probs}") from None
         tables: dict[str, Table] = {}
         for name, cols in TABLE_COLUMNS.items():
             f = path / f"{name}.parquet"
@@ -291,10 +300,13 @@ class Dataset:
                 if name in OPTIONAL_TABLES:
                     continue
                 raise DatasetError(f"{path}: missing required table {name}.parquet")
-            missing = [c for c in cols if c not in pq.read_schema(f).names]
-            if missing:
-                raise DatasetError(f"{f}: missing columns {missing}")
-            tables[name] = _read_columns(pq, pa, f, cols)
+            try:
+                missing = [c for c in cols if c not in pq.read_schema(f).names]
+                if missing:
+                    raise DatasetError(f"{f}: missing columns {missing}")
+                tables[name] = _read_columns(pq, pa, f, cols)
+            except (OSError, pa.ArrowException) as e:  # truncated or not a parquet file
+                raise DatasetError(f"{f}: cannot read the table ({e}); re-create the dataset") from None
         return cls(meta, tables)
 
 
