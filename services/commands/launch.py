@@ -46,6 +46,38 @@ def default_run_dir(name: str) -> Path:
     return Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{safe}"
 
 
+def claim_default_run_dir(name: str) -> Path:
+    """Create ``default_run_dir(name)`` atomically and return it; when it exists already (another
+    launch started in the same second) ``-2``, ``-3``, ... is appended, so two runs never share a
+    directory (they overwrote each other's identities: one hung, the other failed)."""
+    from swarmnav.errors import SwarmnavError
+
+    base = default_run_dir(name)
+    for i in range(1, 1000):
+        p = base if i == 1 else base.with_name(f"{base.name}-{i}")
+        try:
+            p.mkdir(parents=True, exist_ok=False)
+            return p
+        except FileExistsError:
+            continue
+        except OSError as e:
+            raise SwarmnavError(f"cannot create the run directory {p} ({e.strerror}); give one with --out") from None
+    raise SwarmnavError(f"cannot find a new run directory beside {base}; give one with --out")
+
+
+def point_latest(run_dir: Path) -> None:
+    """runs/latest -> run_dir, replaced atomically (two launches may finish setting up together)."""
+    tmp = run_dir.parent / f".latest-{os.getpid()}"
+    try:
+        tmp.unlink(missing_ok=True)
+        tmp.symlink_to(run_dir.name)
+        os.replace(tmp, run_dir.parent / "latest")
+    except OSError as e:  # e.g. runs/latest is a real directory: the run goes on without the link
+        tmp.unlink(missing_ok=True)
+        print(f"swarmnav launch: warning: cannot point {run_dir.parent / 'latest'} at this run ({e.strerror})",
+              file=sys.stderr)
+
+
 def _fault(s: str) -> tuple[int, float]:
     try:
         u, t = s.split("@")
@@ -197,11 +229,14 @@ def run(args) -> int:
         check_schedule(kills, restarts, ds.meta.uav_ids(), ds.meta.t_start, ds.meta.duration_s)
     if seed < 0:
         raise SwarmnavError(f"--seed {seed}: seed must be >= 0")
-    run_dir = Path(args.out) if args.out else default_run_dir(name)
     from ._outdir import check_out_dir, make_out_dir
 
-    prepare_run_dir(check_out_dir(run_dir), args.force)
-    make_out_dir(run_dir)
+    if args.out:
+        run_dir = Path(args.out)
+        prepare_run_dir(check_out_dir(run_dir), args.force)
+        make_out_dir(run_dir)
+    else:
+        run_dir = claim_default_run_dir(name)
     run_dir = run_dir.resolve()
     if args.config:
         t0 = time.perf_counter()
@@ -213,10 +248,7 @@ def run(args) -> int:
         dataset = Path(args.dataset).resolve()
     uavs = ds.meta.uav_ids()
     if not args.out:
-        latest = Path("runs") / "latest"
-        if latest.is_symlink() or latest.exists():
-            latest.unlink()
-        latest.symlink_to(run_dir.name)
+        point_latest(run_dir)
     spec = LaunchSpec(run_dir=run_dir, dataset=dataset, seed=seed, algo=args.algo, uavs=uavs,
                       n_epochs=ds.meta.n_epochs(), kills=sorted(kills, key=lambda x: x[1]),
                       restarts=sorted(restarts, key=lambda x: x[1]), config_sha256=sha, rate=args.rate,
