@@ -223,7 +223,15 @@ def launch(spec: LaunchSpec) -> LaunchResult:
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
     try:
-        with zenoh.open(sec.router_config()) as session:
+        try:
+            session = zenoh.open(sec.router_config())
+        except zenoh.ZError as e:  # e.g. the port was taken between free_port() and now
+            from swarmnav.errors import SwarmnavError
+
+            why = str(e).split(" at /")[0]
+            raise SwarmnavError(f"cannot open the run's Zenoh router on {sec.endpoint} ({why}); no process was "
+                                "started: run again (a new port is chosen)") from None
+        with session:
             clock = session.declare_subscriber(keys.clock(run_id), zenoh.handlers.FifoChannel(10000))
             try:
                 if use_zygote():

@@ -30,3 +30,24 @@ def test_point_latest_on_a_real_directory_warns(tmp_path, monkeypatch, capsys):
     (tmp_path / "runs" / "latest").mkdir()
     L.point_latest(a.resolve())  # no exception: the run goes on
     assert "cannot point" in capsys.readouterr().err
+
+
+def test_router_port_taken_is_a_clear_error(tmp_path, monkeypatch):
+    """The router's port taken by someone else: one clear SwarmnavError, no process started, no traceback."""
+    import socket
+
+    import pytest
+
+    import deploy.launcher as DL
+    from swarmnav.errors import SwarmnavError
+
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 0)
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        monkeypatch.setattr(DL, "free_port", lambda *a, **k: s.getsockname()[1])
+        spec = DL.LaunchSpec(run_dir=tmp_path, dataset=tmp_path / "dataset", seed=1, algo="atvfg", uavs=[1, 2],
+                             n_epochs=3, kills=[], restarts=[], progress=False, secure=False)
+        with pytest.raises(SwarmnavError, match="cannot open the run's Zenoh router"):
+            DL.launch(spec)
+    assert not (tmp_path / "logs").exists() or not any((tmp_path / "logs").iterdir())
