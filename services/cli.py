@@ -79,6 +79,11 @@ def main(argv: list[str] | None = None) -> int:
     except SwarmnavError as e:
         print(f"swarmnav {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except MemoryError:
+        print(f"\nswarmnav {args.command}: error: out of memory: the run is too large for this machine; reduce "
+              "swarm.n_uavs, scenario.duration_s or scenario.imu_rate_hz (e.g. --set scenario.duration_s=60)",
+              file=sys.stderr)
+        return 1
     except Terminated:
         print(f"\nswarmnav {args.command}: terminated (SIGTERM): stopped before the end, its output is incomplete "
               "(no report.json is written)", file=sys.stderr)

@@ -80,3 +80,13 @@ def test_output_piped_into_a_reader_that_stops_is_no_traceback(tmp_path):
     p.stdout.close()  # as `head -1` does once it has its line (here before any: no race with the pipe buffer)
     err = p.stderr.read().decode()
     assert p.wait(timeout=60) == 141 and "Traceback" not in err and "BrokenPipe" not in err
+
+
+def test_out_of_memory_is_one_clear_line(tmp_path):
+    """A scenario too large to simulate (hold-out review: a numpy _ArrayMemoryError traceback)."""
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "services.cli", "simulate", "--config", "configs/smoke.toml",
+                        "--set", "scenario.duration_s=1e12", "--out", str(out)],
+                       cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1 and "out of memory" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert not out.exists()
