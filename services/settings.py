@@ -4,7 +4,9 @@ values: :func:`swarmnav.estimators.registry.estimator_settings`).
 
 The Δl file (key ``"delta_l_m"``, written by ``swarmnav calibrate``; ``"uwb_sigma_m"`` the ranging
 σ it was trained at) is looked up as given when absolute, else relative to the working directory,
-each of ``base_dirs`` and the repository root, the first existing one winning. No file: Δl is
+each of ``base_dirs`` and the repository root, the first existing one winning (`evaluate`'s base dirs
+are the config's parent's parent and its own directory; `launch` hands its processes the same list
+in ``SWARMNAV_DELTA_L_DIRS``, since they run in the repository). No file: Δl is
 None and the estimators fall back to ``delta_l_fallback_sigmas`` × UWB σ. The in-process
 evaluation, the Zenoh node and the monitor all get their settings here, so they run with the same.
 """
@@ -12,24 +14,53 @@ evaluation, the Zenoh node and the monitor all get their settings here, so they 
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 from swarmnav.errors import ConfigError
 from swarmnav.estimators import registry
 
 REPO_ROOT = Path(__file__).resolve().parents[1]  # a relative delta_l_file resolves here when the cwd is elsewhere
+# `swarmnav launch` sets this (os.pathsep-separated) for the processes it starts, which run in the
+# repository: the directories the command itself looked in (its cwd, the config's directories), in
+# place of their own cwd, so that the nodes and the monitor find the Δl file `evaluate` finds
+LOOKUP_DIRS_ENV = "SWARMNAV_DELTA_L_DIRS"
+
+
+def lookup_dirs(config: str | Path | None = None) -> tuple[Path, ...]:
+    """Where a relative delta_l_file is looked up, before the repository root: the cwd, then (with a
+    config file) its parent's parent and its own directory; LOOKUP_DIRS_ENV replaces the cwd."""
+    env = [Path(d) for d in os.environ.get(LOOKUP_DIRS_ENV, "").split(os.pathsep) if d]
+    dirs = tuple(env) if env else (Path.cwd(),)
+    if config is not None:
+        c = Path(config).resolve()
+        dirs += (c.parent.parent, c.parent)
+    return dirs
 
 
 def resolve_delta_l_file(path: str | Path, base_dirs: tuple[Path, ...] = ()) -> Path | None:
-    """First existing candidate: absolute path; else relative to the cwd, each base dir, the repo root."""
+    """First existing candidate: absolute path; else relative to the cwd (or LOOKUP_DIRS_ENV's
+    directories), each base dir, the repo root."""
     p = Path(path)
     if p.is_absolute():
         return p if p.is_file() else None
-    for base in (Path.cwd(), *base_dirs, REPO_ROOT):
+    for base in (*lookup_dirs(), *base_dirs, REPO_ROOT):
         c = base / p
         if c.is_file():
             return c
     return None
+
+
+def warn_missing_delta_l(estimation, command: str, base_dirs: tuple[Path, ...] = ()) -> None:
+    """A delta_l_file that names no file: say so on stderr (the estimators then fall back to
+    delta_l_fallback_sigmas × the UWB σ, which report.json's thresholds.delta_l_source records)."""
+    import sys
+
+    f = estimation.delta_l_file
+    if f and resolve_delta_l_file(f, base_dirs) is None:
+        print(f"swarmnav {command}: warning: estimation.delta_l_file {f!r} not found (looked in "
+              f"{', '.join(dict.fromkeys(str(d) for d in (*lookup_dirs(), *base_dirs, REPO_ROOT)))}): Δl falls back to "
+              f"{estimation.delta_l_fallback_sigmas:g} × the UWB σ", file=sys.stderr)
 
 
 def read_delta_l(path: Path) -> tuple[float, float | None]:

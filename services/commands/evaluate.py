@@ -172,7 +172,7 @@ def _load_inputs(args):
     """-> (scenario_name, seeds, settings, config_sha256, datasets by seed, outage windows)."""
     from swarmnav.dataset import Dataset
 
-    from services.settings import estimator_settings, settings_for_dataset
+    from services.settings import estimator_settings, lookup_dirs, settings_for_dataset, warn_missing_delta_l
 
     if args.config:
         from swarmnav.config import load_config
@@ -180,7 +180,9 @@ def _load_inputs(args):
         cfg_path = Path(args.config)
         sc = load_config(cfg_path, args.set)
         seeds = config_seeds(args.seeds, sc) if args.seeds else [sc.scenario.seed]
-        settings = estimator_settings(sc.estimation, base_dirs=(cfg_path.resolve().parent.parent, cfg_path.resolve().parent))
+        base_dirs = lookup_dirs(cfg_path)[-2:]  # the config's parent's parent and its own directory
+        warn_missing_delta_l(sc.estimation, "evaluate", base_dirs)
+        settings = estimator_settings(sc.estimation, base_dirs=base_dirs)
         return sc.scenario.name, seeds, settings, sc.sha256(), None, cfg_path
     from services.provenance import dataset_sha256
 

@@ -220,6 +220,9 @@ def run(args) -> int:
             if pk.restart_s is not None:
                 restarts.append((pk.uav, pk.restart_s))
         check_schedule(kills, restarts, sc.uav_ids(), 0.0, sc.scenario.duration_s)
+        from services.settings import lookup_dirs, warn_missing_delta_l
+
+        warn_missing_delta_l(sc.estimation, "launch", lookup_dirs(args.config)[-2:])
     else:
         if args.set:
             raise SwarmnavError("--set overrides a config's fields: use it with --config, not --dataset")
@@ -255,9 +258,21 @@ def run(args) -> int:
                       progress=not args.no_progress, timeout_s=args.timeout, secure=not args.insecure,
                       live=(args.live_bind, args.live_port) if args.live else None, web_port=args.web_port,
                       sim_extra=["--garbage-at", str(args.garbage_at)] if args.garbage_at else [])
-    t0 = time.perf_counter()
-    res = launch(spec)
-    wall = time.perf_counter() - t0
+    from services.settings import LOOKUP_DIRS_ENV, lookup_dirs
+
+    # the nodes and the monitor run in the repository: they look a relative delta_l_file up where
+    # this command (and `evaluate`) does, so the two give the same Δl and the same numbers
+    old_dirs = os.environ.get(LOOKUP_DIRS_ENV)
+    os.environ[LOOKUP_DIRS_ENV] = os.pathsep.join(str(d) for d in lookup_dirs(args.config))
+    try:
+        t0 = time.perf_counter()
+        res = launch(spec)
+        wall = time.perf_counter() - t0
+    finally:
+        if old_dirs is None:
+            os.environ.pop(LOOKUP_DIRS_ENV, None)
+        else:
+            os.environ[LOOKUP_DIRS_ENV] = old_dirs
     return finish_report(run_dir, res, wall, ds.meta.duration_s)
 
 
