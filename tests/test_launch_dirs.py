@@ -51,3 +51,23 @@ def test_router_port_taken_is_a_clear_error(tmp_path, monkeypatch):
         with pytest.raises(SwarmnavError, match="cannot open the run's Zenoh router"):
             DL.launch(spec)
     assert not (tmp_path / "logs").exists() or not any((tmp_path / "logs").iterdir())
+
+
+def test_stopped_run_reports_its_speed_over_what_it_got_through(tmp_path, monkeypatch, capsys):
+    """Hold-out review: a run stopped after 6 of 60 epochs in 3 s said '20x real time' (60 s / 3 s)."""
+    import json
+    from types import SimpleNamespace
+
+    import swarmnav.report as R
+
+    monkeypatch.setattr(R, "summary_table", lambda rep: "")
+    monkeypatch.setattr(R, "events_text", lambda ev: "")
+    (tmp_path / "report.json").write_text(json.dumps({"epochs_expected": 60, "epochs_recorded": 6, "complete": False}))
+    res = SimpleNamespace(status=1, processes={}, stop_reason="timed out after 3 s (--timeout)", events=[], security={})
+    assert L.finish_report(tmp_path, res, 3.0, 60.0) == 1
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert rep["distributed"]["realtime_factor"] == 2.0
+    assert "2.0x real time over the 6 s it got through" in capsys.readouterr().out
+    (tmp_path / "report.json").unlink()
+    assert L.finish_report(tmp_path, res, 3.0, 60.0) == 1
+    assert "stopped early" in capsys.readouterr().out

@@ -288,12 +288,15 @@ def finish_report(run_dir: Path, res, wall: float, duration_s: float) -> int:
                 else "restarted" if s["earlier"] else "")
         print(f"{n:<12} {describe_exit(s['exit']):>18}  {note}")
     rp = run_dir / "report.json"
+    covered_s = duration_s if not res.stop_reason else None  # simulated seconds the run got through
     if rp.is_file():
         from swarmnav.report import events_text, summary_table
 
         rep = json.loads(rp.read_text())
+        if res.stop_reason and rep.get("epochs_expected"):
+            covered_s = duration_s * (rep.get("epochs_recorded") or 0) / rep["epochs_expected"]
         rep.setdefault("distributed", {})["wall_s"] = wall
-        rep["distributed"]["realtime_factor"] = duration_s / wall if wall > 0 else None
+        rep["distributed"]["realtime_factor"] = covered_s / wall if wall > 0 and covered_s is not None else None
         rep["distributed"]["processes"] = res.processes
         rep["distributed"]["stop_reason"] = res.stop_reason
         rep.setdefault("security", res.security)
@@ -317,5 +320,7 @@ def finish_report(run_dir: Path, res, wall: float, duration_s: float) -> int:
     else:
         print("no report.json was written (see the logs)" + (f"; {res.stop_reason}" if res.stop_reason else ""), file=sys.stderr)
         status = status or 1
-    print(f"run directory: {run_dir} ({wall:.1f} s wall, {duration_s / wall:.1f}x real time)")
+    speed = (f"{covered_s / wall:.1f}x real time" + (f" over the {covered_s:g} s it got through" if res.stop_reason else "")
+             if covered_s is not None and wall > 0 else "stopped early")
+    print(f"run directory: {run_dir} ({wall:.1f} s wall, {speed})")
     return status
