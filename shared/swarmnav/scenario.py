@@ -354,6 +354,9 @@ def estimation_values(settings: Mapping | None) -> Estimation:
     return Estimation.model_validate({k: s[k] for k in Estimation.model_fields if k in s})
 
 
+MAX_SEEDS = 100_000  # per range of a seed list (a Monte Carlo runs 10)
+
+
 def parse_seed_spec(spec: str | int | list[int]) -> list[int]:
     """Seeds from ``"1-10"``, ``"1,3,7"``, mixes like ``"1-3,7"``, one int, or a list of ints: sorted,
     duplicates removed. Raises ValueError naming the bad part."""
@@ -374,11 +377,15 @@ def parse_seed_spec(spec: str | int | list[int]) -> list[int]:
                     lo, hi = int(part[:i]), int(part[i + 1:])
                     if hi < lo:
                         raise ValueError
+                    if hi - lo >= MAX_SEEDS:  # "1-100000000" built a set of 1e8 ints (GBs) before any check
+                        raise OverflowError
                     out.update(range(lo, hi + 1))
                 else:
                     out.add(int(part))
             except ValueError:
                 raise ValueError(f"cannot parse seeds {part!r} (use e.g. 1-5, 1,3,7 or 1-3,7)") from None
+            except OverflowError:
+                raise ValueError(f"seeds {part!r}: more than {MAX_SEEDS} in one range; give fewer") from None
     if not out:
         raise ValueError("no seed given")
     if min(out) < 0:
