@@ -37,6 +37,17 @@ def test_estimate_round_trip():
     assert e2.links[0].cls == LinkClass.H1_INTERFERED and e2.delta_h_m == 4.0 and e2.rounds == 3
 
 
+def test_estimate_link_without_residual_round_trips():
+    """fg (no detection) gives every link a NaN residual: it travels as null and comes back NaN
+    (hold-out review: the NaN was refused, so every node of `launch --algo fg` died at epoch 1)."""
+    e = _estimate(np.random.default_rng(2))
+    e.links = [LinkInfo(4, LinkClass.H2_NORMAL, float("nan"), 1.0), LinkInfo(5, LinkClass.H2_NORMAL, 0.25, 1.0)]
+    raw = M.estimate_to_msg(e).encode()
+    assert b"NaN" not in raw
+    e2 = M.msg_to_estimate(M.decode(M.EstimateMsg, raw, uav=2))
+    assert np.isnan(e2.links[0].residual_m) and e2.links[1].residual_m == 0.25
+
+
 def test_json_floats_exact():
     """JSON messages carry the shortest repr that round-trips: float64 values arrive bit-identical."""
     rng = np.random.default_rng(1)
@@ -59,6 +70,7 @@ def test_json_floats_exact():
     (lambda d: d.update(vel=[float("inf"), 0.0, 0.0]), "invalid"),
     (lambda d: d.update(quat=[1.0, 0.0, 0.0]), "invalid"),
     (lambda d: d.update(links=[{"other": 4, "cls": 3, "residual_m": 0.0, "weight": 1.0}]), "invalid"),
+    (lambda d: d.update(links=[{"other": 4, "cls": 2, "residual_m": float("nan"), "weight": 1.0}]), "invalid"),
     (lambda d: d.update(extra=1), "invalid"),
     (lambda d: d.update(uav=3), "wrong_uav"),
     (lambda d: d.update(k=1), "stale"),

@@ -183,7 +183,7 @@ class MonitorCore:
             r.delta_h_m[i, j] = m.delta_h_m
         if m.delta_l_m is not None:
             r.delta_l_m[i, j] = m.delta_l_m
-        links = [(int(li.other), int(li.cls), float(li.residual_m), float(li.weight)) for li in m.links]
+        links = [(int(li.other), int(li.cls), M.residual_or_nan(li.residual_m), float(li.weight)) for li in m.links]
         self.links.extend((m.k, m.uav, *li) for li in links)
         if links and m.k > self.logged_k:
             self.links_to_draw.setdefault(m.k, []).extend((m.uav, o, c) for o, c, _, _ in links)

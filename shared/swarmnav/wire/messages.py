@@ -62,7 +62,9 @@ class LinkMsg(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     other: int = Field(ge=0)
     cls: int = Field(ge=0, le=2)
-    residual_m: Finite
+    # None: not computed (an estimator without detection, e.g. fg, classifies every link H2 with no
+    # residual; a NaN here was refused and killed every fg node at its first estimate)
+    residual_m: Finite | None
     weight: NonNeg
 
 
@@ -151,10 +153,19 @@ def _f(a) -> list[float]:
     return [float(x) for x in np.asarray(a, dtype=np.float64).ravel()]
 
 
+def _finite_or_none(x) -> float | None:
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def residual_or_nan(x) -> float:
+    return float("nan") if x is None else float(x)
+
+
 def estimate_to_msg(e: NodeEstimate, **extra) -> EstimateMsg:
     return EstimateMsg(uav=e.uav, k=e.k, t=float(e.t), pos=_f(e.pos), vel=_f(e.vel), pos_cov=_f(e.pos_cov),
                        quat=None if e.quat is None else _f(e.quat),
-                       links=[LinkMsg(other=int(li.other), cls=int(li.cls), residual_m=float(li.residual_m),
+                       links=[LinkMsg(other=int(li.other), cls=int(li.cls), residual_m=_finite_or_none(li.residual_m),
                                       weight=float(li.weight)) for li in e.links],
                        rounds=int(e.rounds), step_ms=float(e.step_ms),
                        delta_h_m=None if e.delta_h_m is None else float(e.delta_h_m),
@@ -165,7 +176,8 @@ def msg_to_estimate(m: EstimateMsg) -> NodeEstimate:
     return NodeEstimate(uav=m.uav, k=m.k, t=m.t, pos=np.array(m.pos, np.float64), vel=np.array(m.vel, np.float64),
                         pos_cov=np.array(m.pos_cov, np.float64).reshape(3, 3),
                         quat=None if m.quat is None else np.array(m.quat, np.float64),
-                        links=[LinkInfo(li.other, LinkClass(li.cls), li.residual_m, li.weight) for li in m.links],
+                        links=[LinkInfo(li.other, LinkClass(li.cls), residual_or_nan(li.residual_m), li.weight)
+                               for li in m.links],
                         rounds=m.rounds, step_ms=m.step_ms, delta_h_m=m.delta_h_m, delta_l_m=m.delta_l_m)
 
 
