@@ -43,6 +43,8 @@ BROKEN_TOML = "[scenario\nname = 1\n"
     (["keys", "--uavs", "1-3", "--port", "0", "--out", "{out}"], "not a TCP port"),
     # hold-out review: an --out under a regular file, or a config that is a directory, was a traceback
     (["simulate", "--config", "configs/smoke.toml", "--out", "{file}/x"], "is not a directory"),
+    (["launch", "--config", "configs/dropout.toml", "--set", "scenario.duration_s=60", "--out", "{out}"],
+     "faults.process_kill[0].at_s = 400 s (UAV 7) lies outside the scenario"),
     (["evaluate", "--config", "configs/smoke.toml", "--seeds", "1-100000000", "--out", "{out}"], "more than 100000"),
     (["simulate", "--config", "{tmp}", "--out", "{out}"], "is a directory, not a config file"),
     (["evaluate", "--config", "configs/smoke.toml", "--out", "{file}"], "exists and is not a directory"),

@@ -215,7 +215,11 @@ def run(args) -> int:
         seed = sc.scenario.seed if args.seed is None else args.seed
         name = sc.scenario.name
         sha = sc.sha256()
-        for pk in sc.faults.process_kill:
+        for i, pk in enumerate(sc.faults.process_kill):
+            for what, t in (("at_s", pk.at_s), ("restart_s", pk.restart_s)):
+                if t is not None and not 0.0 < t < sc.scenario.duration_s:  # named as the config's, not as --kill
+                    raise SwarmnavError(f"faults.process_kill[{i}].{what} = {t:g} s (UAV {pk.uav}) lies outside the scenario "
+                                        f"(0 < T < {sc.scenario.duration_s:g} s): move it, or run a longer scenario")
             kills.append((pk.uav, pk.at_s))
             if pk.restart_s is not None:
                 restarts.append((pk.uav, pk.restart_s))
