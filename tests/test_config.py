@@ -162,3 +162,11 @@ def test_evaluation_names_tuning_and_report_seeds(tmp_path):
             load_config(p)
         for s in says:
             assert s in str(ei.value), (s, str(ei.value))
+
+
+def test_faults_after_the_end_are_named():
+    """paper.toml shortened to 60 s: its fault windows never happen; the commands say so (hold-out review)."""
+    sc = load_config(PAPER, ["scenario.duration_s=60"])
+    assert sc.faults_after_end() == ["faults.module_failure[0] (300-500 s)", "faults.stuck[0] (700-760 s)",
+                                     "faults.drift[0] (600-800 s)"]
+    assert load_config(CONFIGS / "smoke.toml").faults_after_end() == []

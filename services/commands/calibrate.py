@@ -57,7 +57,7 @@ def run(args) -> int:
         return _cross_validate(args)
     if not args.out:
         raise ConfigError("--config needs --out FILE (where to write Δl, e.g. configs/delta_l.json)")
-    from ._outdir import check_out_dir, make_out_dir
+    from ._checks import check_out_dir, make_out_dir
 
     if Path(args.out).is_dir():
         raise ConfigError(f"--out {args.out}: is a directory; give the JSON file to write, e.g. configs/delta_l.json")

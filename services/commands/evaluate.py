@@ -179,6 +179,9 @@ def _load_inputs(args):
 
         cfg_path = Path(args.config)
         sc = load_config(cfg_path, args.set)
+        from ._checks import note_faults_after_end
+
+        note_faults_after_end(sc, "evaluate")
         seeds = config_seeds(args.seeds, sc) if args.seeds else [sc.scenario.seed]
         base_dirs = lookup_dirs(cfg_path)[-2:]  # the config's parent's parent and its own directory
         warn_missing_delta_l(sc.estimation, "evaluate", base_dirs)
@@ -328,7 +331,7 @@ def run(args) -> int:
     t_wall = time.perf_counter()
     jobs, algos = _check_run_args(args)
     name, seeds, settings, cfg_sha, ds_given, cfg_path = _load_inputs(args)
-    from ._outdir import make_out_dir
+    from ._checks import make_out_dir
 
     out = make_out_dir(args.out)
     # a report left by an earlier run in this directory must not pass for this one's if this run

@@ -67,7 +67,7 @@ def run(args) -> int:
     check_host(args.router_host)
     if not 0 < args.port < 65536:
         raise SwarmnavError(f"--port {args.port}: not a TCP port")
-    from ._outdir import make_out_dir
+    from ._checks import make_out_dir
 
     out = make_out_dir(args.out)
     if out.exists() and any(out.iterdir()):

@@ -227,6 +227,9 @@ def run(args) -> int:
         from services.settings import lookup_dirs, warn_missing_delta_l
 
         warn_missing_delta_l(sc.estimation, "launch", lookup_dirs(args.config)[-2:])
+        from ._checks import note_faults_after_end
+
+        note_faults_after_end(sc, "launch")
     else:
         if args.set:
             raise SwarmnavError("--set overrides a config's fields: use it with --config, not --dataset")
@@ -236,7 +239,7 @@ def run(args) -> int:
         check_schedule(kills, restarts, ds.meta.uav_ids(), ds.meta.t_start, ds.meta.duration_s)
     if seed < 0:
         raise SwarmnavError(f"--seed {seed}: seed must be >= 0")
-    from ._outdir import check_out_dir, make_out_dir
+    from ._checks import check_out_dir, make_out_dir
 
     if args.out:
         run_dir = Path(args.out)

@@ -45,9 +45,10 @@ def run(args) -> int:
     sc = load_config(args.config, args.set)
     if args.seed is not None and args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
-    from ._outdir import check_out_dir, make_out_dir
+    from ._checks import check_out_dir, make_out_dir, note_faults_after_end
 
     check_out_dir(args.out)
+    note_faults_after_end(sc, "simulate")
     ds = simulate(sc, args.seed)
     ds.write(make_out_dir(args.out))
     wall = time.perf_counter() - t0

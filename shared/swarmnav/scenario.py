@@ -469,6 +469,14 @@ class Scenario(_Model):
     def uav_ids(self) -> list[int]:
         return list(range(1, self.swarm.n_uavs + 1))
 
+    def faults_after_end(self) -> list[str]:
+        """The fault windows that start at or after the scenario's end, so never happen (e.g.
+        paper.toml's with ``--set scenario.duration_s=60``), each as 'faults.<kind>[i] (start-end s)'."""
+        T = self.scenario.duration_s
+        return [f"faults.{name}[{i}] ({w.start_s:g}-{w.end_s:g} s)"
+                for name in ("module_failure", "stuck", "drift", "gnss_outage")
+                for i, w in enumerate(getattr(self.faults, name)) if w.start_s >= T]
+
     def to_dict(self) -> dict:
         d = self.model_dump(mode="json")
         if d["faults"].get("uwb") is None:  # no [faults.uwb]: the dict (and sha256) of older configs

@@ -1,5 +1,6 @@
-"""Output directories of the commands: a path that cannot be a directory, or cannot be created, is
-one clear SwarmnavError naming the option (not an OSError traceback), checked before the work."""
+"""Checks shared by the commands: output directories (a path that cannot be a directory, or cannot be
+created, is one clear SwarmnavError naming the option, not an OSError traceback, checked before the
+work) and notes on a scenario (fault windows that never happen)."""
 
 from __future__ import annotations
 
@@ -32,3 +33,13 @@ def make_out_dir(path: str | Path, flag: str = "--out") -> Path:
     except OSError as e:
         raise SwarmnavError(f"{flag} {p}: cannot create the directory ({e.strerror}); choose another {flag}") from None
     return p
+
+
+def note_faults_after_end(sc, command: str) -> None:
+    """Say on stderr which of the scenario's fault windows never happen (they start after its end)."""
+    import sys
+
+    late = sc.faults_after_end()
+    if late:
+        print(f"swarmnav {command}: note: {', '.join(late)} start(s) after the scenario's end "
+              f"({sc.scenario.duration_s:g} s) and will not happen", file=sys.stderr)
