@@ -43,6 +43,9 @@ BROKEN_TOML = "[scenario\nname = 1\n"
     (["keys", "--uavs", "1-3", "--port", "0", "--out", "{out}"], "not a TCP port"),
     # hold-out review: an --out under a regular file, or a config that is a directory, was a traceback
     (["simulate", "--config", "configs/smoke.toml", "--out", "{file}/x"], "is not a directory"),
+    (["calibrate", "--config", "configs/smoke.toml", "--warmup-s", "nan", "--out", "{out}"], "--warmup-s nan"),
+    (["calibrate", "--config", "configs/smoke.toml", "--window-s", "inf", "--out", "{out}"], "--window-s inf"),
+    (["calibrate", "--dataset", "{tmp}", "--grid", "commit_weight=nan"], "expected KEY=V1,V2"),
     (["launch", "--config", "configs/dropout.toml", "--set", "scenario.duration_s=60", "--out", "{out}"],
      "faults.process_kill[0].at_s = 400 s (UAV 7) lies outside the scenario"),
     (["evaluate", "--config", "configs/smoke.toml", "--seeds", "1-100000000", "--out", "{out}"], "more than 100000"),

@@ -53,6 +53,12 @@ def run(args) -> int:
     from swarmnav.errors import ConfigError
     from swarmnav.sim import simulate
 
+    import math
+
+    if not (math.isfinite(args.warmup_s) and args.warmup_s >= 0):
+        raise ConfigError(f"--warmup-s {args.warmup_s:g}: seconds skipped before collecting residuals, a number >= 0 (default 20)")
+    if not (math.isfinite(args.window_s) and args.window_s > 0):
+        raise ConfigError(f"--window-s {args.window_s:g}: seconds of residuals collected, a number > 0 (default 60)")
     if args.dataset:
         return _cross_validate(args)
     if not args.out:
@@ -66,7 +72,8 @@ def run(args) -> int:
     sc = load_config(args.config)
     seed = sc.scenario.seed if args.seed is None else args.seed
     d = sc.model_dump()
-    end = min(sc.scenario.duration_s, args.warmup_s + args.window_s)
+    dt = sc.scenario.epoch_dt_s  # a whole number of epochs (--warmup-s 20.5 --window-s 10 was refused as 30.5 s)
+    end = min(sc.scenario.duration_s, math.ceil((args.warmup_s + args.window_s) / dt - 1e-9) * dt)
     d["scenario"]["duration_s"] = end  # simulate only what is used
     sc_short = parse_config(d, args.config)
     r = sc_short.faults
@@ -99,7 +106,7 @@ def _cross_validate(args) -> int:
         values = [float(x) for x in vals.split(",") if x.strip()]
     except ValueError:
         values = []
-    if not key or not values or any(x < 0 for x in values):
+    if not key or not values or any(not (x >= 0 and x < float("inf")) for x in values):
         raise ConfigError(f"--grid {args.grid!r}: expected KEY=V1,V2,... with numbers >= 0, "
                           "e.g. drag_sigma_scale=1,1.5,2")
     if args.folds < 2:
