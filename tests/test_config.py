@@ -170,3 +170,11 @@ def test_faults_after_the_end_are_named():
     assert sc.faults_after_end() == ["faults.module_failure[0] (300-500 s)", "faults.stuck[0] (700-760 s)",
                                      "faults.drift[0] (600-800 s)"]
     assert load_config(CONFIGS / "smoke.toml").faults_after_end() == []
+
+
+def test_set_value_that_is_not_utf8_is_refused():
+    """`--set $'scenario.name=caf\\xe9'` (Latin-1 bytes): evaluate ran, then died writing report.md
+    (UnicodeEncodeError traceback); now refused up front (hold-out review)."""
+    with pytest.raises(ConfigError, match="not valid UTF-8"):
+        load_config(PAPER, ["scenario.name=caf\udce9"])
+    assert load_config(PAPER, ["scenario.name=café ✈"]).scenario.name == "café ✈"

@@ -119,6 +119,10 @@ def parse_override(text: str) -> tuple[list[str], object]:
     """``KEY=VALUE`` of ``--set``: KEY a dotted field path (``swarm.n_uavs``), VALUE a TOML value
     (``100``, ``60.0``, ``true``, ``[2, 9]``, ``"x"``) or else a bare string. ConfigError (one line)
     naming the problem."""
+    try:
+        str(text).encode("utf-8")
+    except UnicodeEncodeError:  # bytes that are not UTF-8 on the command line: they broke the report's writing
+        raise ConfigError(f"--set {text!r}: not valid UTF-8 text; use UTF-8 (or ASCII) names and values") from None
     key, eq, raw = str(text).partition("=")
     key, raw = key.strip(), raw.strip()
     path = key.split(".")
