@@ -43,6 +43,7 @@ BROKEN_TOML = "[scenario\nname = 1\n"
     (["keys", "--uavs", "1-3", "--port", "0", "--out", "{out}"], "not a TCP port"),
     # hold-out review: an --out under a regular file, or a config that is a directory, was a traceback
     (["simulate", "--config", "configs/smoke.toml", "--out", "{file}/x"], "is not a directory"),
+    (["evaluate", "--config", "configs/smoke.toml", "--out", "{out}/e\udcff"], "not valid UTF-8"),
     (["calibrate", "--config", "configs/smoke.toml", "--warmup-s", "nan", "--out", "{out}"], "--warmup-s nan"),
     (["calibrate", "--config", "configs/smoke.toml", "--window-s", "inf", "--out", "{out}"], "--window-s inf"),
     (["calibrate", "--dataset", "{tmp}", "--grid", "commit_weight=nan"], "expected KEY=V1,V2"),

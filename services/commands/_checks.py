@@ -12,6 +12,10 @@ def check_out_dir(path: str | Path, flag: str = "--out") -> Path:
     from swarmnav.errors import SwarmnavError
 
     p = Path(path)
+    try:
+        str(p.absolute()).encode("utf-8")
+    except UnicodeEncodeError:  # the Rerun recording (and JSON) need a UTF-8 path: it failed after the work
+        raise SwarmnavError(f"{flag} {p}: the path is not valid UTF-8; choose a UTF-8 (or ASCII) name") from None
     if p.exists() and not p.is_dir():
         raise SwarmnavError(f"{flag} {p}: exists and is not a directory; choose another {flag}")
     for parent in p.absolute().parents:
