@@ -30,3 +30,15 @@ def test_estimator_failure_names_the_estimator_the_cause_and_the_remedy():
     msg = describe_estimator_failure("central", 7, e)
     assert msg.startswith("central failed on seed 7 (RuntimeError: Indeterminate linear system")
     assert "[init]" in msg and "for more information" not in msg and "\n" not in msg
+
+
+def test_central_indeterminate_failure_names_the_qr_workaround():
+    """Hold-out review: central failed this way on valid scenarios (no links, all GNSS out, 0.5 s
+    epochs with all masters) and each ran with QR; the message says how."""
+    e = RuntimeError("\nIndeterminate linear system detected while working near variable\n7061 (Symbol: b5).\n")
+    msg = describe_estimator_failure("central", 7, e)
+    assert "central_factorization" in msg and "QR" in msg and "\n" not in msg
+    assert "central_factorization" not in describe_estimator_failure("atvfg", 7, e)
+    sc = load_config("configs/smoke.toml", ['estimation.graph.central_factorization="QR"'])
+    assert sc.estimation.graph == {"central_factorization": "QR", **{k: v for k, v in sc.estimation.graph.items()
+                                                                      if k != "central_factorization"}}
