@@ -28,8 +28,6 @@ def describe_estimator_failure(algo: str, seed: int, exc: BaseException) -> str:
     what = f"{type(exc).__name__}: {lines[0] if lines else '(no message)'}"
     advice = next((a for key, a in _SOLVER_ADVICE if key in str(exc)), "")
     if algo == "central" and "Indeterminate linear system" in str(exc):
-        # measured (hold-out review): every such failure of the oracle seen (no inter-UAV links,
-        # every UAV without GNSS, 0.5 s epochs with all masters) runs with ISAM2's QR factorization
-        advice += ("; the oracle may run with QR instead of Cholesky: --set "
-                   "'estimation.graph.central_factorization=\"QR\"'")
+        # the oracle switches from Cholesky to QR by itself on this error (central.py): QR failed too
+        advice += "; the oracle had already switched from Cholesky to QR (both failed)"
     return f"{algo} failed on seed {seed} ({what})" + (f" — {advice}" if advice else "") + "; the full traceback is in the log"

@@ -30,6 +30,8 @@ zero-velocity prior (``imu.InitialRest``) while a UAV that started at rest is st
 
 from __future__ import annotations
 
+import logging
+
 import gtsam
 import numpy as np
 
@@ -170,11 +172,14 @@ class CentralEstimator(SwarmEstimator):
             pp.setBiasAccCovariance(np.eye(3) * max(imu.accel_bias_rw, self.accel_rw_floor) ** 2)
             self.params[u] = pp
         self.pims = {u: gtsam.PreintegratedCombinedMeasurements(self.params[u], gtsam.imuBias.ConstantBias()) for u in self.uavs}
-        p = gtsam.ISAM2Params()
-        p.setRelinearizeThreshold(t.central_relin_threshold)
-        p.relinearizeSkip = t.central_relin_skip
-        p.setFactorization(t.central_factorization)
-        self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag, p)
+        self.relin = (t.central_relin_threshold, t.central_relin_skip)
+        self.factorization = t.central_factorization
+        self.smoother = self._new_smoother()
+        # Cholesky may refuse a joint graph that QR solves (an ill-conditioned or weakly constrained
+        # window: no inter-UAV link, every UAV without GNSS, short epochs): then the oracle switches
+        # to QR for good, replaying every update so far (``_update``); kept only while on Cholesky
+        self._updates: list[tuple] | None = [] if self.factorization == "CHOLESKY" else None
+        self.switched_to_qr_at: int | None = None  # the epoch at which it did (None: never)
         # rotor-drag model of multirotor UAVs, as in the per-UAV graph (own_factors.OwnFactors.add_drag;
         # same settings keys), off during a UAV's initial rest phase
         self.drag = {u for u in self.uavs if t.rotor_drag
@@ -269,11 +274,9 @@ class CentralEstimator(SwarmEstimator):
         self._add_ranges(g, range_labels, k, t, set(inputs))
         if tdoa_labels is not None:
             self._add_tdoa(g, tdoa_labels, k, t, set(inputs))
-        self.smoother.update(g, vals, ts)
-        est = self.smoother.calculateEstimate()
+        est, covs = self._update(g, vals, ts, k)
         self.k = k
         out: dict[int, NodeEstimate] = {}
-        covs = self._position_covariances(k) if self.with_cov else {}
         for u in self.uavs:
             pose, vel, b = est.atPose3(X(u, k)), est.atVector(V(u, k)), est.atConstantBias(B(u, k))
             self.nav[u] = gtsam.NavState(pose, vel)
@@ -284,6 +287,38 @@ class CentralEstimator(SwarmEstimator):
             q = pose.rotation().toQuaternion()
             out[u] = NodeEstimate(u, k, t, pose.translation().copy(), np.asarray(vel, float).copy(), pc,
                                   np.array([q.w(), q.x(), q.y(), q.z()]))
+        return out
+
+    def _new_smoother(self) -> gtsam.IncrementalFixedLagSmoother:
+        p = gtsam.ISAM2Params()
+        p.setRelinearizeThreshold(self.relin[0])
+        p.relinearizeSkip = self.relin[1]
+        p.setFactorization(self.factorization)
+        return gtsam.IncrementalFixedLagSmoother(self.lag, p)
+
+    def _update(self, g, vals, ts, k: int):
+        """The smoother's update with epoch k's factors; its estimate and (``central_covariance``) the
+        UAVs' position covariances. On Cholesky's "Indeterminate linear system" the smoother is rebuilt
+        with QR and every update so far replayed in order (the same fixed-lag window and
+        marginalisation), then this one applied; QR's own failure is raised."""
+        try:
+            self.smoother.update(g, vals, ts)
+            out = self.smoother.calculateEstimate(), self._position_covariances(k) if self.with_cov else {}
+        except RuntimeError as e:
+            if self._updates is None or "Indeterminate linear system" not in str(e):
+                raise
+            self.factorization, self.switched_to_qr_at = "QR", k
+            logging.getLogger("swarmnav.central").warning(
+                "central: Cholesky refused the joint graph at epoch %d (%s); switched to QR, %d updates replayed",
+                k, str(e).strip().splitlines()[0], len(self._updates))
+            self.smoother = self._new_smoother()
+            for past in self._updates:
+                self.smoother.update(*past)
+            self._updates = None
+            self.smoother.update(g, vals, ts)
+            return self.smoother.calculateEstimate(), self._position_covariances(k) if self.with_cov else {}
+        if self._updates is not None:
+            self._updates.append((g, vals, ts))
         return out
 
     def _add_drag(self, g, vals, ts, u: int, k: int, t: float, inp: EpochInput) -> None:
