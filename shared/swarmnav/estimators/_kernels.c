@@ -7,7 +7,9 @@
                  :func:`normal_equations`: the round solves, the commit, the reported solve);
    own_meat      the sandwich "meat" of those links (rounds.py :func:`link_meat`);
    cho_solve     the two triangular solves after numpy's Cholesky factorisation (joint.py);
-   spd_solve     a whole Cholesky solve of a small system (joint.py, up to ~60 unknowns).
+   spd_solve     a whole Cholesky solve of a small system (joint.py, up to ~60 unknowns);
+   own_tdoa      the passive-listening links of own_system's solve (rounds.py :func:`normal_equations`);
+   tdoa_res      their residuals and innovation variances (rounds.py :func:`tdoa_residuals`).
 
    joint_system:
 
@@ -1048,7 +1050,183 @@ done:
     return ret;
 }
 
+/* The passive-listening (tdoa) links of a node's own solve (rounds.py :func:`normal_equations` and
+   :func:`tdoa_residuals`), in the order of operations of the numpy code they replace (models.tdoa
+   tdoa_h; gᵀ C g as (gᵀC)·g, column by column), so the results are bit for bit those of numpy.
+   Row k has three ends (listener, initiator, responder) of kind 0 "self" (the own tag: position =
+   own origin + off), 1 "peer" (a neighbour's tag) or 2 "fixed" (an anchor: position = off). */
+
+/* pow(var, 2.0) as Python/numpy compute var ** 2 (libm's pow; GCC would fold a direct call to var * var,
+   which differs in the last bit for ~0.1 % of values) */
+static double (*volatile pow_fn)(double, double) = pow;
+
+/* gᵀ C g as numpy's g @ C @ g: v = gᵀ C column by column, then v · g */
+static double quad_np(const double *g, const double *C) {
+    double v[3];
+    for (int s = 0; s < 3; s++) v[s] = g[0] * C[s] + g[1] * C[3 + s] + g[2] * C[6 + s];
+    return v[0] * g[0] + v[1] * g[1] + v[2] * g[2];
+}
+
+/* models.tdoa.tdoa_h: h and the gradients (listener, initiator, responder) of the points x (3 x 3) */
+static double tdoa_h3(const double *x, double *gr) {
+    double dr[3], di[3];
+    for (int q = 0; q < 3; q++) {
+        dr[q] = x[6 + q] - x[q];
+        di[q] = x[3 + q] - x[q];
+    }
+    double rr = sqrt(dr[0] * dr[0] + dr[1] * dr[1] + dr[2] * dr[2]);
+    double ri = sqrt(di[0] * di[0] + di[1] * di[1] + di[2] * di[2]);
+    double mr = rr > 1e-9 ? rr : 1e-9, mi = ri > 1e-9 ? ri : 1e-9;
+    for (int q = 0; q < 3; q++) {
+        double ur = dr[q] / mr, ui = di[q] / mi;
+        gr[q] = ui - ur;
+        gr[3 + q] = -ui;
+        gr[6 + q] = ur;
+    }
+    return rr - ri;
+}
+
+/* own_tdoa(p, kind, pos, cov, w, z, sig2, cov_true, H, g, meat): add the tdoa rows to H (3, 3), g (3,)
+   and, with cov_true (n, 3, 3, 3) non-empty, to meat (3, 3). Per row k (kinds (n, 3) int64; pos (n, 3, 3):
+   the own tag's offset from p, the neighbour's tag position or the anchor's; cov (n, 3, 3, 3): the
+   neighbour ends' covariances (ignored for the others); w, z, sig2 (n,)):
+     j = Σ_self g_e, var = σ² + Σ_peer g_eᵀ C_e g_e, H += (w/var) j jᵀ, g += (w (z − h)/var) j,
+     meat += (w² var_true / var²) j jᵀ with var_true from cov_true. */
+static PyObject *own_tdoa(PyObject *self, PyObject *args) {
+    static const char *names[11] = {"p", "kind", "pos", "cov", "w", "z", "sig2", "cov_true", "H", "g", "meat"};
+    buf_t b[11];
+    PyObject *ret = NULL;
+    if (get_bufs(args, b, 11, "dqddddddddd", names, 8, "own_tdoa") < 0) return NULL;
+    Py_ssize_t n = b[4].b.len / 8;
+    int with_meat = b[10].b.len > 0;
+    if (b[0].b.len != 24 || b[1].b.len != n * 24 || b[2].b.len != n * 72 || b[3].b.len != n * 216 ||
+        b[5].b.len != n * 8 || b[6].b.len != n * 8 || b[8].b.len != 72 || b[9].b.len != 24 ||
+        (with_meat ? (b[7].b.len != n * 216 || b[10].b.len != 72) : b[7].b.len != 0)) {
+        PyErr_SetString(PyExc_ValueError, "own_tdoa: inconsistent array sizes");
+        goto done;
+    }
+    const double *p = b[0].b.buf, *pos = b[2].b.buf, *cov = b[3].b.buf, *w = b[4].b.buf, *z = b[5].b.buf,
+                 *sig2 = b[6].b.buf, *cov_t = b[7].b.buf;
+    const long long *kind = b[1].b.buf;
+    double *H = b[8].b.buf, *g = b[9].b.buf, *meat = b[10].b.buf;
+    for (Py_ssize_t k = 0; k < n; k++) {
+        double x[9], gr[9], j[3] = {0.0, 0.0, 0.0};
+        long long kd[3];
+        for (int e = 0; e < 3; e++) {
+            kd[e] = kind[3 * k + e];
+            for (int q = 0; q < 3; q++) x[3 * e + q] = kd[e] == 0 ? p[q] + pos[9 * k + 3 * e + q] : pos[9 * k + 3 * e + q];
+        }
+        double h = tdoa_h3(x, gr);
+        double sp = 0.0, st = 0.0;
+        for (int e = 0; e < 3; e++) {
+            if (kd[e] == 0)
+                for (int q = 0; q < 3; q++) j[q] += gr[3 * e + q];
+            else if (kd[e] == 1) {
+                sp += quad_np(gr + 3 * e, cov + 27 * k + 9 * e);
+                if (with_meat) st += quad_np(gr + 3 * e, cov_t + 27 * k + 9 * e);
+            }
+        }
+        double var = sig2[k] + sp;
+        double a = w[k] / var, c = w[k] * (z[k] - h) / var;
+        for (int q = 0; q < 3; q++) {
+            for (int s = 0; s < 3; s++) H[3 * q + s] += a * (j[q] * j[s]);
+            g[q] += c * j[q];
+        }
+        if (with_meat) {
+            double m = w[k] * w[k] * (sig2[k] + st) / pow_fn(var, 2.0);
+            for (int q = 0; q < 3; q++)
+                for (int s = 0; s < 3; s++) meat[3 * q + s] += m * (j[q] * j[s]);
+        }
+    }
+    ret = Py_None;
+    Py_INCREF(ret);
+done:
+    release_bufs(b, 11);
+    return ret;
+}
+
+/* tdoa_res(me, kind, idx, off, z, sig2, P, C, P_own, absres, var): per row k, |z − h| into absres and
+   the innovation variance into var: σ² + Σ over the bodies of its ends (the own body, each neighbour
+   by node index; anchors none) of gᵀ Cov g with g the summed gradients of the body's ends, Cov =
+   P_own or C[idx] (C (N, 3, 3) empty: var = σ²). Positions: self me + off, peer P[idx] + off,
+   fixed off. idx (n, 3) int64 < N = len(P) for peer ends. */
+static PyObject *tdoa_res(PyObject *self, PyObject *args) {
+    static const char *names[11] = {"me", "kind", "idx", "off", "z", "sig2", "P", "C", "P_own", "absres", "var"};
+    buf_t b[11];
+    PyObject *ret = NULL;
+    long long *ki = NULL;
+    if (get_bufs(args, b, 11, "dqqdddddddd", names, 9, "tdoa_res") < 0) return NULL;
+    Py_ssize_t n = b[4].b.len / 8, N = b[6].b.len / 24;
+    int with_cov = b[7].b.len > 0;
+    if (b[0].b.len != 24 || b[1].b.len != n * 24 || b[2].b.len != n * 24 || b[3].b.len != n * 72 ||
+        b[5].b.len != n * 8 || b[6].b.len != N * 24 || b[9].b.len != n * 8 || b[10].b.len != n * 8 ||
+        (with_cov ? (b[7].b.len != N * 72 || b[8].b.len != 72) : b[8].b.len != 0)) {
+        PyErr_SetString(PyExc_ValueError, "tdoa_res: inconsistent array sizes");
+        goto done;
+    }
+    ki = PyMem_Malloc((size_t)(n > 0 ? n : 1) * 48);
+    if (!ki) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    memcpy(ki, b[1].b.buf, (size_t)n * 24);
+    memcpy(ki + 3 * n, b[2].b.buf, (size_t)n * 24);
+    for (Py_ssize_t k = 0; k < 3 * n; k++)
+        if (ki[k] == 1 && (ki[3 * n + k] < 0 || ki[3 * n + k] >= N)) {
+            PyErr_SetString(PyExc_ValueError, "tdoa_res: peer index out of range");
+            goto done;
+        }
+    const double *me = b[0].b.buf, *off = b[3].b.buf, *z = b[4].b.buf, *sig2 = b[5].b.buf, *P = b[6].b.buf,
+                 *C = b[7].b.buf, *Pown = b[8].b.buf;
+    double *absres = b[9].b.buf, *var = b[10].b.buf;
+    for (Py_ssize_t k = 0; k < n; k++) {
+        double x[9], gr[9];
+        const long long *kd = ki + 3 * k, *ix = ki + 3 * n + 3 * k;
+        for (int e = 0; e < 3; e++)
+            for (int q = 0; q < 3; q++) {
+                double o = off[9 * k + 3 * e + q];
+                x[3 * e + q] = kd[e] == 0 ? me[q] + o : (kd[e] == 1 ? P[3 * ix[e] + q] + o : o);
+            }
+        double h = tdoa_h3(x, gr);
+        double v = sig2[k];
+        if (with_cov) {
+            /* bodies in order of first appearance: key -1 the own body, else the neighbour's node index */
+            long long key[3];
+            double bg[9];
+            int nb = 0;
+            for (int e = 0; e < 3; e++) {
+                if (kd[e] != 0 && kd[e] != 1) continue;
+                long long kk = kd[e] == 0 ? -1 : ix[e];
+                int s = 0;
+                while (s < nb && key[s] != kk) s++;
+                if (s == nb) {
+                    key[nb++] = kk;
+                    for (int q = 0; q < 3; q++) bg[3 * s + q] = 0.0 + gr[3 * e + q];
+                } else
+                    for (int q = 0; q < 3; q++) bg[3 * s + q] += gr[3 * e + q];
+            }
+            double sum = 0.0;
+            for (int s = 0; s < nb; s++) sum += quad_np(bg + 3 * s, key[s] < 0 ? Pown : C + 9 * key[s]);
+            if (nb) v += sum;
+        }
+        absres[k] = fabs(z[k] - h);
+        var[k] = v;
+    }
+    ret = Py_None;
+    Py_INCREF(ret);
+done:
+    PyMem_Free(ki);
+    release_bufs(b, 11);
+    return ret;
+}
+
 static PyMethodDef methods[] = {
+    {"own_tdoa", own_tdoa, METH_VARARGS,
+     "own_tdoa(p, kind, pos, cov, w, z, sig2, cov_true, H, g, meat): add a node's tdoa links to H (3, 3), g (3,) "
+     "and (cov_true, meat non-empty) the sandwich meat (rounds.py normal_equations). float64 / int64, C-contiguous."},
+    {"tdoa_res", tdoa_res, METH_VARARGS,
+     "tdoa_res(me, kind, idx, off, z, sig2, P, C, P_own, absres, var): |z - h| and innovation variance of a round "
+     "cache's tdoa rows (rounds.py tdoa_residuals). float64 / int64, C-contiguous."},
     {"joint_system", joint_system, METH_VARARGS,
      "joint_system(x, prior_mean, prior_info, ia, ib, d, a, obs, tgt, z, c, H, g): fill H (3n, 3n) and g (3n,) "
      "of the joint snapshot's Gauss-Newton step at x (n, 3); a = range weight / sigma^2 (m,), c = az/el "

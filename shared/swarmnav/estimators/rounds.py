@@ -59,6 +59,48 @@ class RoundCache:
     azel_sig2: np.ndarray | None = None
     azel_z: np.ndarray | None = None
     tdoa: list = field(default_factory=list)
+    _tdoa_arr: tuple | None = field(default=None, repr=False, compare=False)
+
+    def tdoa_arrays(self) -> tuple:
+        """The tdoa rows as arrays for the C kernels, built once per cache (the relink window
+        re-reads an epoch's cache every epoch): kind (n, 3) int64 (0 self, 1 peer, 2 fixed), node
+        index (n, 3) int64 (peer ends, else 0), offset (n, 3, 3) (self: the tag's world offset; peer:
+        its tag's offset from the broadcast position; fixed: the ENU point), z (n,), σ² (n,)."""
+        if self._tdoa_arr is None or len(self._tdoa_arr[3]) != len(self.tdoa):
+            n = len(self.tdoa)
+            kind, idx, off = np.zeros((n, 3), np.int64), np.zeros((n, 3), np.int64), np.zeros((n, 3, 3))
+            for r, (ends, _, _) in enumerate(self.tdoa):
+                for e, (k, x, lev) in enumerate(ends):
+                    kind[r, e] = _TDOA_KIND[k]
+                    if k == "peer":
+                        idx[r, e], off[r, e] = x, lev
+                    else:
+                        off[r, e] = x
+            z = np.array([z for _, z, _ in self.tdoa], float)
+            sig2 = np.array([s2 for _, _, s2 in self.tdoa], float)
+            self._tdoa_arr = (kind, idx, off, z, sig2)
+        return self._tdoa_arr
+
+
+_TDOA_KIND = {"self": 0, "peer": 1, "fixed": 2}
+
+
+@dataclass
+class TdoaLinks:
+    """The active tdoa links of a solve as arrays (:func:`prepare_links`): kind (n, 3) as
+    :meth:`RoundCache.tdoa_arrays`; pos (n, 3, 3) the ends' points (self: the own tag's offset from
+    the own position; peer: the neighbour's tag; fixed: the anchor); cov (n, 3, 3, 3) the peer ends'
+    covariances (zero for the others); w, z, σ² (n,)."""
+
+    kind: np.ndarray
+    pos: np.ndarray
+    cov: np.ndarray
+    w: np.ndarray
+    z: np.ndarray
+    sig2: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.w)
 
 
 @dataclass
@@ -101,9 +143,21 @@ def prepare_links(c: RoundCache, P: np.ndarray, C: np.ndarray, weights: dict[int
             n = c.azel_node[:na][keep]
             L.azel = (P[n], C[n] * f[keep][:, None, None], w[keep], c.azel_sig2[:na][keep], c.azel_z[:na][keep])
     if c.tdoa:
-        L.tdoa = [([(kind, P[x] + lev, C[x] * (infl(c.nodes[x]) if per_node else infl))
-                    if kind == "peer" else (kind, x, None) for kind, x, lev in ends], z, sig2, w)
-                  for (ends, z, sig2), w in zip(c.tdoa, tdoa_w) if w > 0]
+        kind, idx, off, z, sig2 = c.tdoa_arrays()
+        w = np.asarray(tdoa_w, float)
+        n = min(len(w), len(z))  # as zip(c.tdoa, tdoa_w)
+        keep = np.zeros(len(z), bool)
+        keep[:n] = w[:n] > 0
+        w = np.concatenate([w[:n], np.zeros(len(z) - n)])
+        if keep.any():
+            kind, idx, off, z, sig2, w = kind[keep], idx[keep], off[keep], z[keep], sig2[keep], w[keep]
+            peer = kind == 1
+            pos = off.copy()
+            pos[peer] = P[idx[peer]] + off[peer]  # a neighbour's tag: its position + the tag's offset
+            cov = np.zeros(kind.shape + (3, 3))
+            f = np.array([infl(u) for u in c.nodes], float) if per_node else np.full(len(c.nodes), float(infl))
+            cov[peer] = C[idx[peer]] * f[idx[peer]][:, None, None]
+            L.tdoa = TdoaLinks(kind, pos, cov, w, z, sig2)
     return L
 
 
@@ -129,6 +183,15 @@ def normal_equations(L: Links, p: np.ndarray, info: np.ndarray | None = None, p_
         H, gv = info.copy(), info @ (p_loc - p)
     _kernels.own_system(np.ascontiguousarray(p, float), *_rng_arrays(L.rng), *_azel_arrays(L.azel), H, gv)
     meat = None if L_true is None else link_meat(L, p, L_true, info)
+    if isinstance(L.tdoa, TdoaLinks):
+        T = L.tdoa
+        cov_t = _EMPTY if L_true is None else np.ascontiguousarray(L_true.tdoa.cov, float)
+        _kernels.own_tdoa(np.ascontiguousarray(p, float), np.ascontiguousarray(T.kind, np.int64),
+                          np.ascontiguousarray(T.pos, float), np.ascontiguousarray(T.cov, float),
+                          np.ascontiguousarray(T.w, float), np.ascontiguousarray(T.z, float),
+                          np.ascontiguousarray(T.sig2, float), cov_t, H, gv, _EMPTY if meat is None else meat)
+        return (H, gv) if L_true is None else (H, gv, meat)
+    # a list of ([(kind, x, Cov)], z, σ², w) rows: the reference the C kernel own_tdoa reproduces bit for bit
     tdoa_t = L_true.tdoa if L_true is not None else [None] * len(L.tdoa)
     for (ends, z, sig2, w), true in zip(L.tdoa, tdoa_t):
         # own position p: this node's tag(s) among the three; neighbours' broadcast covariance
@@ -145,6 +208,7 @@ def normal_equations(L: Links, p: np.ndarray, info: np.ndarray | None = None, p_
     return (H, gv) if L_true is None else (H, gv, meat)
 
 
+_EMPTY = np.zeros(0)
 _NONE = (np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
 _NONE_AZEL = (np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0), np.zeros((0, 2)))
 
@@ -212,7 +276,23 @@ def tdoa_residuals(c: RoundCache, P: np.ndarray, me: np.ndarray, C: np.ndarray |
     """|z − h| / σ of the cooperative tdoa rows of ``c`` at positions P (``c.nodes`` order), the own
     body origin at ``me``. With covariances (``C`` per node, ``P_own`` for this node) σ is the
     innovation's: σ² = σ_row² + Σ gᵀ·Cov·g over the ends; else the row's σ. ``normalise`` False:
-    |z − h| in metres."""
+    |z − h| in metres. The C kernel ``tdoa_res`` (:func:`tdoa_residuals_py` is the reference it
+    reproduces bit for bit)."""
+    if not c.tdoa:
+        return np.zeros(0)
+    kind, idx, off, z, sig2 = c.tdoa_arrays()
+    n = len(z)
+    absres, var = np.empty(n), np.empty(n)
+    with_cov = C is not None
+    _kernels.tdoa_res(np.ascontiguousarray(me, float), kind, idx, off, z, sig2, np.ascontiguousarray(P, float).reshape(-1, 3),
+                      np.ascontiguousarray(C, float) if with_cov else _EMPTY,
+                      np.ascontiguousarray(P_own, float) if with_cov else _EMPTY, absres, var)
+    return absres / np.sqrt(var) if normalise else absres
+
+
+def tdoa_residuals_py(c: RoundCache, P: np.ndarray, me: np.ndarray, C: np.ndarray | None = None,
+                      P_own: np.ndarray | None = None, normalise: bool = True) -> np.ndarray:
+    """The numpy reference of :func:`tdoa_residuals` (tests)."""
     out = []
     for ends, z, sig2 in c.tdoa:
         pts = [me + x if kind == "self" else (P[x] + lev if kind == "peer" else x) for kind, x, lev in ends]
