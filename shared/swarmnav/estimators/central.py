@@ -135,6 +135,10 @@ def azel_block_factor(key_obs: int, key_tgts: list[int], az: np.ndarray, el: np.
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(2 * n), [key_obs, *key_tgts], err)
 
 
+FIRST_EPOCH_ITERATIONS = 10
+ITERATION_TOL_M = 0.01
+
+
 class CentralEstimator(SwarmEstimator):
     """Joint fixed-lag smoother over the whole swarm with truly faulty ranges removed (ORACLE)."""
 
@@ -275,6 +279,8 @@ class CentralEstimator(SwarmEstimator):
         if tdoa_labels is not None:
             self._add_tdoa(g, tdoa_labels, k, t, set(inputs))
         est, covs = self._update(g, vals, ts, k)
+        if k0 == 0 and FIRST_EPOCH_ITERATIONS:  # the first measurements meet the initial state's error
+            est, covs = self._iterate(k, est, covs)
         self.k = k
         out: dict[int, NodeEstimate] = {}
         for u in self.uavs:
@@ -320,6 +326,19 @@ class CentralEstimator(SwarmEstimator):
         if self._updates is not None:
             self._updates.append((g, vals, ts))
         return out
+
+    def _iterate(self, k: int, est, covs):
+        """More Gauss–Newton iterations of the window (empty ISAM2 updates: each relinearises what
+        moved beyond the threshold and solves again) until no UAV's position moves more than
+        ``ITERATION_TOL_M``, at most ``FIRST_EPOCH_ITERATIONS`` more."""
+        empty = (gtsam.NonlinearFactorGraph(), gtsam.Values(), {})
+        for _ in range(FIRST_EPOCH_ITERATIONS):
+            before = np.array([est.atPose3(X(u, k)).translation() for u in self.uavs])
+            est, covs = self._update(*empty, k)
+            after = np.array([est.atPose3(X(u, k)).translation() for u in self.uavs])
+            if np.abs(after - before).max() < ITERATION_TOL_M:
+                break
+        return est, covs
 
     def _add_drag(self, g, vals, ts, u: int, k: int, t: float, inp: EpochInput) -> None:
         mf = mean_specific_force(inp)
