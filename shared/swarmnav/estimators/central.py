@@ -135,8 +135,7 @@ def azel_block_factor(key_obs: int, key_tgts: list[int], az: np.ndarray, el: np.
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(2 * n), [key_obs, *key_tgts], err)
 
 
-FIRST_EPOCH_ITERATIONS = 10
-ITERATION_TOL_M = 0.01
+ITERATION_TOL_M = 0.01  # central_first_epoch_iterations: iterate until no UAV's position moves this much (m)
 
 
 class CentralEstimator(SwarmEstimator):
@@ -177,6 +176,7 @@ class CentralEstimator(SwarmEstimator):
             self.params[u] = pp
         self.pims = {u: gtsam.PreintegratedCombinedMeasurements(self.params[u], gtsam.imuBias.ConstantBias()) for u in self.uavs}
         self.relin = (t.central_relin_threshold, t.central_relin_skip)
+        self.first_epoch_iterations = t.central_first_epoch_iterations
         self.factorization = t.central_factorization
         self.smoother = self._new_smoother()
         # Cholesky may refuse a joint graph that QR solves (an ill-conditioned or weakly constrained
@@ -279,7 +279,7 @@ class CentralEstimator(SwarmEstimator):
         if tdoa_labels is not None:
             self._add_tdoa(g, tdoa_labels, k, t, set(inputs))
         est, covs = self._update(g, vals, ts, k)
-        if k0 == 0 and FIRST_EPOCH_ITERATIONS:  # the first measurements meet the initial state's error
+        if k0 == 0 and self.first_epoch_iterations:  # the first measurements meet the initial state's error
             est, covs = self._iterate(k, est, covs)
         self.k = k
         out: dict[int, NodeEstimate] = {}
@@ -330,9 +330,11 @@ class CentralEstimator(SwarmEstimator):
     def _iterate(self, k: int, est, covs):
         """More Gauss–Newton iterations of the window (empty ISAM2 updates: each relinearises what
         moved beyond the threshold and solves again) until no UAV's position moves more than
-        ``ITERATION_TOL_M``, at most ``FIRST_EPOCH_ITERATIONS`` more."""
+        ``ITERATION_TOL_M``, at most ``central_first_epoch_iterations`` more. One step from the
+        initial state's error can overshoot by metres where the first epoch brings many ranges
+        (docs/baselines.md)."""
         empty = (gtsam.NonlinearFactorGraph(), gtsam.Values(), {})
-        for _ in range(FIRST_EPOCH_ITERATIONS):
+        for _ in range(self.first_epoch_iterations):
             before = np.array([est.atPose3(X(u, k)).translation() for u in self.uavs])
             est, covs = self._update(*empty, k)
             after = np.array([est.atPose3(X(u, k)).translation() for u in self.uavs])

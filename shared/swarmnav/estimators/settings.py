@@ -95,7 +95,8 @@ class EstimatorTuning(BaseModel):
     central_integration_sigma: float = Field(1e-3, gt=0, description="preintegration integration σ")
     central_relin_threshold: float = Field(0.05, gt=0, description="ISAM2 relinearisation threshold")
     central_relin_skip: int = Field(1, ge=1, description="ISAM2 relinearise every this many updates")
-    central_factorization: Literal["CHOLESKY", "QR"] = Field("CHOLESKY", description="ISAM2 factorization")
+    central_factorization: Literal["CHOLESKY", "QR"] = Field("CHOLESKY", description="ISAM2 factorization (where Cholesky refuses the graph, the oracle switches to QR by itself)")
+    central_first_epoch_iterations: int = Field(0, ge=0, le=100, description="extra ISAM2 iterations of the first epoch (until no UAV moves 1 cm; 0: one Gauss-Newton step per epoch, as the nodes' smoothers)")
     # -- fkf ------------------------------------------------------------------------------------
     fkf_beta_master: float = Field(0.0, ge=0, le=1, description="information-sharing factor of the master filter")
     fkf_beta_gnss: float = Field(0.5, ge=0, le=1, description="... of the GNSS sub-filter")
