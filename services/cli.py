@@ -64,14 +64,31 @@ def _on_sigterm(main_pid: int):
     return handler
 
 
+def install_sigterm() -> None:
+    """SIGTERM unwinds this process like Ctrl-C (:class:`Terminated`); a forked child (evaluate's
+    pool and node workers, the zygote) gets the default SIGTERM back at once: with a Python handler,
+    a SIGTERM the kernel hands to one of the child's other threads (a queue's feeder thread) waits
+    for its main thread, which may be blocked in a read, so Pool.terminate() waited forever on that
+    worker (a rare hang at the end of evaluate, under load)."""
+    import signal
+
+    signal.signal(signal.SIGTERM, _on_sigterm(os.getpid()))
+    os.register_at_fork(after_in_child=_default_sigterm)
+
+
+def _default_sigterm() -> None:
+    import signal
+
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def main(argv: list[str] | None = None) -> int:
     import signal
 
     from swarmnav.errors import SwarmnavError
 
     args = build_parser().parse_args(argv)
-    # launch installs its own SIGTERM/SIGINT handling for the swarm while it runs
-    signal.signal(signal.SIGTERM, _on_sigterm(os.getpid()))
+    install_sigterm()  # launch installs its own SIGTERM/SIGINT handling for the swarm while it runs
     try:
         rc = int(args._run(args) or 0)
         sys.stdout.flush()  # here, so that a closed pipe is caught below rather than at interpreter exit

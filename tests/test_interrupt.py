@@ -54,3 +54,20 @@ def test_evaluate_stops_cleanly(tmp_path, sig, status, says):
     time.sleep(0.5)
     assert not [w for w in workers if _alive(w)], "worker processes left running"
     assert not (out / "report.json").exists()
+
+
+def test_forked_children_get_the_default_sigterm_back():
+    """The CLI's SIGTERM handler is for its own process only: a forked child (a pool worker) must
+    die on SIGTERM whichever of its threads the kernel delivers it to (a Python handler waited for
+    a main thread blocked in a read: Pool.terminate() then hung)."""
+    code = (
+        "import os, signal, sys\n"
+        "from services import cli\n"
+        "cli.install_sigterm()\n"
+        "assert signal.getsignal(signal.SIGTERM) not in (signal.SIG_DFL, None)\n"
+        "pid = os.fork()\n"
+        "if pid == 0:\n"
+        "    os._exit(0 if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL else 3)\n"
+        "sys.exit(os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1]))\n")
+    r = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
