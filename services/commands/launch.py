@@ -208,28 +208,12 @@ def run(args) -> int:
     kills, restarts = list(args.kill), list(args.restart)
     sha = None
     if args.config:
-        from swarmnav.config import load_config
         from swarmnav.sim import simulate
 
-        sc = load_config(args.config, args.set)
+        sc = _checked_scenario(args, kills, restarts)
         seed = sc.scenario.seed if args.seed is None else args.seed
         name = sc.scenario.name
         sha = sc.sha256()
-        for i, pk in enumerate(sc.faults.process_kill):
-            for what, t in (("at_s", pk.at_s), ("restart_s", pk.restart_s)):
-                if t is not None and not 0.0 < t < sc.scenario.duration_s:  # named as the config's, not as --kill
-                    raise SwarmnavError(f"faults.process_kill[{i}].{what} = {t:g} s (UAV {pk.uav}) lies outside the scenario "
-                                        f"(0 < T < {sc.scenario.duration_s:g} s): move it, or run a longer scenario")
-            kills.append((pk.uav, pk.at_s))
-            if pk.restart_s is not None:
-                restarts.append((pk.uav, pk.restart_s))
-        check_schedule(kills, restarts, sc.uav_ids(), 0.0, sc.scenario.duration_s)
-        from services.settings import lookup_dirs, warn_missing_delta_l
-
-        warn_missing_delta_l(sc.estimation, "launch", lookup_dirs(args.config)[-2:])
-        from ._checks import note_faults_after_end
-
-        note_faults_after_end(sc, "launch")
     else:
         if args.set:
             raise SwarmnavError("--set overrides a config's fields: use it with --config, not --dataset")
@@ -265,22 +249,51 @@ def run(args) -> int:
                       progress=not args.no_progress, timeout_s=args.timeout, secure=not args.insecure,
                       live=(args.live_bind, args.live_port) if args.live else None, web_port=args.web_port,
                       sim_extra=["--garbage-at", str(args.garbage_at)] if args.garbage_at else [])
+    t0 = time.perf_counter()
+    res = _launch_with_lookup_dirs(launch, spec, args.config)
+    return finish_report(run_dir, res, time.perf_counter() - t0, ds.meta.duration_s)
+
+
+def _checked_scenario(args, kills: list, restarts: list):
+    """The config with ``--set`` applied, its process kills appended to ``kills`` / ``restarts``
+    and the whole schedule checked; warns of a missing Δl file and of faults after the end."""
+    from swarmnav.config import load_config
+    from swarmnav.errors import SwarmnavError
+
+    from services.settings import lookup_dirs, warn_missing_delta_l
+
+    from ._checks import note_faults_after_end
+
+    sc = load_config(args.config, args.set)
+    for i, pk in enumerate(sc.faults.process_kill):
+        for what, t in (("at_s", pk.at_s), ("restart_s", pk.restart_s)):
+            if t is not None and not 0.0 < t < sc.scenario.duration_s:  # named as the config's, not as --kill
+                raise SwarmnavError(f"faults.process_kill[{i}].{what} = {t:g} s (UAV {pk.uav}) lies outside the scenario "
+                                    f"(0 < T < {sc.scenario.duration_s:g} s): move it, or run a longer scenario")
+        kills.append((pk.uav, pk.at_s))
+        if pk.restart_s is not None:
+            restarts.append((pk.uav, pk.restart_s))
+    check_schedule(kills, restarts, sc.uav_ids(), 0.0, sc.scenario.duration_s)
+    warn_missing_delta_l(sc.estimation, "launch", lookup_dirs(args.config)[-2:])
+    note_faults_after_end(sc, "launch")
+    return sc
+
+
+def _launch_with_lookup_dirs(launch, spec, config):
+    """``launch(spec)`` with LOOKUP_DIRS_ENV set for its processes: the nodes and the monitor run in
+    the repository and look a relative delta_l_file up where this command (and `evaluate`) does,
+    so the two give the same Δl and the same numbers."""
     from services.settings import LOOKUP_DIRS_ENV, lookup_dirs
 
-    # the nodes and the monitor run in the repository: they look a relative delta_l_file up where
-    # this command (and `evaluate`) does, so the two give the same Δl and the same numbers
     old_dirs = os.environ.get(LOOKUP_DIRS_ENV)
-    os.environ[LOOKUP_DIRS_ENV] = os.pathsep.join(str(d) for d in lookup_dirs(args.config))
+    os.environ[LOOKUP_DIRS_ENV] = os.pathsep.join(str(d) for d in lookup_dirs(config))
     try:
-        t0 = time.perf_counter()
-        res = launch(spec)
-        wall = time.perf_counter() - t0
+        return launch(spec)
     finally:
         if old_dirs is None:
             os.environ.pop(LOOKUP_DIRS_ENV, None)
         else:
             os.environ[LOOKUP_DIRS_ENV] = old_dirs
-    return finish_report(run_dir, res, wall, ds.meta.duration_s)
 
 
 def finish_report(run_dir: Path, res, wall: float, duration_s: float) -> int:
