@@ -309,23 +309,30 @@ class CentralEstimator(SwarmEstimator):
         marginalisation), then this one applied; QR's own failure is raised."""
         try:
             self.smoother.update(g, vals, ts)
-            out = self.smoother.calculateEstimate(), self._position_covariances(k) if self.with_cov else {}
+            out = self._estimate(k)
         except RuntimeError as e:
             if self._updates is None or "Indeterminate linear system" not in str(e):
                 raise
-            self.factorization, self.switched_to_qr_at = "QR", k
-            logging.getLogger("swarmnav.central").warning(
-                "central: Cholesky refused the joint graph at epoch %d (%s); switched to QR, %d updates replayed",
-                k, str(e).strip().splitlines()[0], len(self._updates))
-            self.smoother = self._new_smoother()
-            for past in self._updates:
-                self.smoother.update(*past)
-            self._updates = None
+            self._switch_to_qr(k, e)
             self.smoother.update(g, vals, ts)
-            return self.smoother.calculateEstimate(), self._position_covariances(k) if self.with_cov else {}
+            return self._estimate(k)
         if self._updates is not None:
             self._updates.append((g, vals, ts))
         return out
+
+    def _estimate(self, k: int):
+        return self.smoother.calculateEstimate(), self._position_covariances(k) if self.with_cov else {}
+
+    def _switch_to_qr(self, k: int, e: RuntimeError) -> None:
+        """A QR smoother in place of the Cholesky one, every update so far replayed in order."""
+        self.factorization, self.switched_to_qr_at = "QR", k
+        logging.getLogger("swarmnav.central").warning(
+            "central: Cholesky refused the joint graph at epoch %d (%s); switched to QR, %d updates replayed",
+            k, str(e).strip().splitlines()[0], len(self._updates))
+        self.smoother = self._new_smoother()
+        for past in self._updates:
+            self.smoother.update(*past)
+        self._updates = None
 
     def _iterate(self, k: int, est, covs):
         """More Gauss–Newton iterations of the window (empty ISAM2 updates: each relinearises what
